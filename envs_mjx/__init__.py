@@ -1,0 +1,39 @@
+"""MJX environments of the paper's tasks, behind one registry (DESIGN.md).
+
+    env = envs_mjx.make("planar_reach", render=False)
+    state = jax.jit(env.reset)(key)
+    state = jax.jit(env.step)(state, action)
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from envs_mjx.base import Env, ObservationSpec, State
+
+# name -> "module:Class", imported lazily so that building one env never loads the others
+_REGISTRY: dict[str, str] = {
+    "planar_reach": "envs_mjx.planar_reach:PlanarReach",
+}
+
+
+def register(name: str, target: str) -> None:
+    """Register an env class given as "module:Class" under `name`."""
+    _REGISTRY[name] = target
+
+
+def names() -> tuple[str, ...]:
+    """The registered environment names."""
+    return tuple(_REGISTRY)
+
+
+def make(name: str, **overrides: Any) -> Env:
+    """Build the environment `name`; keyword overrides go to its constructor."""
+    if name not in _REGISTRY:
+        raise ValueError(f"unknown env {name!r}; valid envs: {', '.join(names())}")
+    module_name, class_name = _REGISTRY[name].split(":")
+    return getattr(importlib.import_module(module_name), class_name)(**overrides)
+
+
+__all__ = ["Env", "ObservationSpec", "State", "make", "names", "register"]

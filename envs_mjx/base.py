@@ -1,0 +1,219 @@
+"""The functional environment API shared by every task (DESIGN.md, "The environment API").
+
+An `Env` is a set of pure functions over a `State` pytree: `reset(key) -> State` and
+`step(state, action) -> State`, both jit- and vmap-able, plus static facts fixed at
+construction (`action_size`, `observation_spec`, `episode_length`). The extrinsic reward
+is the paper's sparse reward (Eq. 6): `r_e = -[‖achieved_goal - desired_goal‖ > ε]`.
+
+Subclasses describe one task through a few hooks (`_reset_data`, `_apply_action`,
+`_proprio`, `_achieved_goal`); the physics loop, the camera, rewards, step counting and
+action checks live here once.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+import os
+from typing import Any
+
+import chex
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from envs_mjx.camera import Camera
+
+ASSETS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
+CONTROL_PERIOD = 0.04  # seconds, 25 Hz (TASKS.md)
+IMAGE_SHAPE = (42, 42, 1)  # grayscale, paper Table I
+
+
+@struct.dataclass
+class State:
+    """One environment's state: MJX data, the observation dict, reward and bookkeeping."""
+
+    data: mjx.Data
+    obs: dict[str, jax.Array]
+    reward: jax.Array
+    done: jax.Array
+    metrics: dict[str, jax.Array]
+    info: dict[str, Any]
+
+
+@dataclasses.dataclass(frozen=True)
+class ObservationSpec:
+    """Static description of an observation: named proprio segments, goal and image shapes."""
+
+    proprio_segments: tuple[tuple[str, int], ...]
+    goal_size: int
+    image_shape: tuple[int, int, int] = IMAGE_SHAPE
+
+    @property
+    def proprio_size(self) -> int:
+        return sum(size for _, size in self.proprio_segments)
+
+    @property
+    def segment_names(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in self.proprio_segments)
+
+    def segment_slice(self, name: str) -> slice:
+        """The slice of the flat proprio vector that holds segment `name`."""
+        start = 0
+        for seg, size in self.proprio_segments:
+            if seg == name:
+                return slice(start, start + size)
+            start += size
+        raise KeyError(f"unknown proprio segment {name!r}; segments are {self.segment_names}")
+
+    def shapes(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        """Shape and dtype of every observation entry."""
+        return {
+            "proprio": ((self.proprio_size,), jnp.float32),
+            "image": (self.image_shape, jnp.uint8),
+            "achieved_goal": ((self.goal_size,), jnp.float32),
+            "desired_goal": ((self.goal_size,), jnp.float32),
+        }
+
+
+def load_model(filename: str) -> mujoco.MjModel:
+    """Load an MJCF model from `assets/`."""
+    return mujoco.MjModel.from_xml_path(os.path.join(ASSETS_DIR, filename))
+
+
+def sparse_reward(achieved_goal: jax.Array, desired_goal: jax.Array, epsilon: float) -> jax.Array:
+    """Paper Eq. 6, batched over leading axes: 0 within `epsilon`, else -1."""
+    dist = jnp.linalg.norm(achieved_goal - desired_goal, axis=-1)
+    return -(dist > epsilon).astype(jnp.float32)
+
+
+def check_action(action: Any, action_size: int) -> None:
+    """Reject NaN or wrongly shaped concrete actions with a clear error (outside jit)."""
+    if isinstance(action, jax.core.Tracer):
+        return
+    arr = np.asarray(action)
+    if arr.shape[-1:] != (action_size,):
+        raise ValueError(f"action has shape {arr.shape}; expected trailing size {action_size}")
+    if np.isnan(arr).any():
+        raise ValueError(f"action contains NaN: {arr}; actions must be finite values in [-1, 1]")
+
+
+class Env(abc.ABC):
+    """Base class of the MJX tasks. Subclasses set the static facts and implement the hooks.
+
+    Args:
+      mj_model: the compiled MuJoCo model.
+      episode_length: T, steps per episode (no early termination).
+      epsilon: success threshold ε of the sparse reward.
+      action_size: A.
+      observation_spec: the named proprio segments and goal size.
+      camera_name: the model camera that renders the image observation.
+      render: whether to render the image; when False the image is all zeros (proprio agents).
+    """
+
+    name: str = "env"
+
+    def __init__(
+        self,
+        mj_model: mujoco.MjModel,
+        *,
+        episode_length: int,
+        epsilon: float,
+        action_size: int,
+        observation_spec: ObservationSpec,
+        camera_name: str,
+        render: bool = True,
+    ):
+        n_substeps = CONTROL_PERIOD / mj_model.opt.timestep
+        if abs(n_substeps - round(n_substeps)) > 1e-6:
+            raise ValueError(f"timestep {mj_model.opt.timestep} does not divide the control period {CONTROL_PERIOD}")
+        self.mj_model = mj_model
+        self.mjx_model = mjx.put_model(mj_model)
+        self.n_substeps = int(round(n_substeps))
+        self.episode_length = episode_length
+        self.epsilon = epsilon
+        self.action_size = action_size
+        self.observation_spec = observation_spec
+        self.render = render
+        self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0])
+
+    # ----- hooks for subclasses -------------------------------------------------------
+    @abc.abstractmethod
+    def _reset_data(self, key: jax.Array) -> tuple[mjx.Data, jax.Array]:
+        """Return the initial (data, desired_goal); data need not be forwarded."""
+
+    @abc.abstractmethod
+    def _apply_action(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
+        """Write a clipped action in [-1, 1] into the controls (ctrl / mocap)."""
+
+    @abc.abstractmethod
+    def _proprio(self, data: mjx.Data) -> dict[str, jax.Array]:
+        """The proprio segments by name, in `observation_spec` order."""
+
+    @abc.abstractmethod
+    def _achieved_goal(self, data: mjx.Data) -> jax.Array:
+        """The achieved goal (G,) of `data`."""
+
+    # ----- the API ---------------------------------------------------------------------
+    def compute_reward(self, achieved_goal: jax.Array, desired_goal: jax.Array) -> jax.Array:
+        """Sparse extrinsic reward (paper Eq. 6), batched, for HER relabelling."""
+        return sparse_reward(achieved_goal, desired_goal, self.epsilon)
+
+    def reset(self, key: jax.Array) -> State:
+        data, goal = self._reset_data(key)
+        data = mjx.forward(self.mjx_model, data)
+        obs = self._observe(data, goal)
+        zero = jnp.zeros((), jnp.float32)
+        return State(
+            data=data,
+            obs=obs,
+            reward=self.compute_reward(obs["achieved_goal"], goal),
+            done=jnp.zeros((), jnp.bool_),
+            metrics={"success": zero, "distance": self._distance(obs)},
+            info={"step": jnp.zeros((), jnp.int32), "goal": goal},
+        )
+
+    def step(self, state: State, action: jax.Array) -> State:
+        """Advance one control period (0.04 s). Actions are clipped to [-1, 1]; NaN is
+        rejected with an error when the action is concrete, and replaced by 0 under jit."""
+        check_action(action, self.action_size)
+        chex.assert_shape(action, (self.action_size,))
+        action = jnp.clip(jnp.nan_to_num(action, nan=0.0), -1.0, 1.0)
+        data = self._apply_action(state.data, action)
+        data = jax.lax.fori_loop(0, self.n_substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
+        # mjx.step leaves positions one substep behind qpos; refresh them for obs and camera
+        data = mjx.kinematics(self.mjx_model, data)
+        goal = state.info["goal"]
+        obs = self._observe(data, goal)
+        reward = self.compute_reward(obs["achieved_goal"], goal)
+        step = state.info["step"] + 1
+        return state.replace(
+            data=data,
+            obs=obs,
+            reward=reward,
+            done=step >= self.episode_length,
+            metrics={"success": (reward == 0.0).astype(jnp.float32), "distance": self._distance(obs)},
+            info={**state.info, "step": step},
+        )
+
+    # ----- shared helpers -------------------------------------------------------------
+    def _observe(self, data: mjx.Data, goal: jax.Array) -> dict[str, jax.Array]:
+        segments = self._proprio(data)
+        proprio = jnp.concatenate([segments[n] for n in self.observation_spec.segment_names]).astype(jnp.float32)
+        if self.render:
+            image = self.camera.render(self.mjx_model, data)
+        else:
+            image = jnp.zeros(IMAGE_SHAPE, jnp.uint8)
+        return {
+            "proprio": proprio,
+            "image": image,
+            "achieved_goal": self._achieved_goal(data).astype(jnp.float32),
+            "desired_goal": goal.astype(jnp.float32),
+        }
+
+    @staticmethod
+    def _distance(obs: dict[str, jax.Array]) -> jax.Array:
+        return jnp.linalg.norm(obs["achieved_goal"] - obs["desired_goal"])
