@@ -15,6 +15,10 @@ from envs_mjx.base import Env, ObservationSpec, State
 # name -> "module:Class", imported lazily so that building one env never loads the others
 _REGISTRY: dict[str, str] = {
     "planar_reach": "envs_mjx.planar_reach:PlanarReach",
+    "ur5_reach": "envs_mjx.ur5_reach:UR5Reach",
+    "nicol_slide": "envs_mjx.nicol:NicolSlide",
+    "nicol_lift": "envs_mjx.nicol:NicolLift",
+    "nicol_lift_reduced": "envs_mjx.nicol:make_reduced_lift",
 }
 
 

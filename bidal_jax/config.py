@@ -1,0 +1,116 @@
+"""Configuration: frozen dataclasses, one per concern, with agent presets by name.
+
+Every field carries its documentation in `metadata["help"]`, which is also what the
+command line shows for it (`experiments/run.py --help`). Command lines only override
+fields; nothing mutates a config after construction (use `dataclasses.replace`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+
+def doc(default: Any, help: str) -> Any:  # noqa: A002 - "help" reads best at call sites
+    """A dataclass field with a default and its documentation."""
+    return dataclasses.field(default=default, metadata={"help": help})
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentSpec:
+    """What an agent observes and whether it learns the BidAL forward/inverse models."""
+
+    uses_image: bool
+    uses_proprio: bool
+    bidal: bool
+
+
+AGENTS: dict[str, AgentSpec] = {
+    "proprio_baseline": AgentSpec(uses_image=False, uses_proprio=True, bidal=False),
+    "visual_baseline": AgentSpec(uses_image=True, uses_proprio=False, bidal=False),
+    "multimodal_baseline": AgentSpec(uses_image=True, uses_proprio=True, bidal=False),
+    "visual_bidal": AgentSpec(uses_image=True, uses_proprio=False, bidal=True),
+    "multimodal_bidal": AgentSpec(uses_image=True, uses_proprio=True, bidal=True),
+}
+
+
+def agent_spec(name: str) -> AgentSpec:
+    if name not in AGENTS:
+        raise ValueError(f"unknown agent {name!r}; valid agents: {', '.join(AGENTS)}")
+    return AGENTS[name]
+
+
+@dataclasses.dataclass(frozen=True)
+class NetworkConfig:
+    """Sizes of the networks (paper Sec. III-B and III-C)."""
+
+    conv_channels: int = doc(16, "channels of each of the four conv layers of the vision branch")
+    vision_features: int = doc(64, "width of the dense layer that ends the vision branch")
+    proprio_features: int = doc(64, "width of the proprio branch's dense layer")
+    latent_size: int = doc(50, "size of the latent state φ(s) of the multimodal encoder")
+    embed_size: int = doc(64, "width of the UVFA embeddings ψ(s) and η(g)")
+    hidden_size: int = doc(128, "width of the actor's and critic's hidden layers")
+    hidden_layers: int = doc(2, "number of hidden layers of the actor and the critic")
+    model_hidden_size: int = doc(128, "hidden width of the forward model f and inverse model g")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """The DDPG + HER learner and the BidAL models (paper Sec. III-C, Eqs. 4, 5, 8)."""
+
+    num_envs: int = doc(16, "parallel environments in each rollout of a cycle")
+    cycles_per_epoch: int = doc(10, "rollout/update cycles in one epoch")
+    updates_per_cycle: int = doc(40, "gradient updates after each cycle's rollout")
+    batch_size: int = doc(256, "transitions per gradient update")
+    buffer_episodes: int = doc(4096, "replay capacity in episodes (a multiple of num_envs)")
+    gamma: float = doc(0.98, "discount γ; the critic target is clipped to [-1/(1-γ), 0]")
+    tau: float = doc(0.05, "Polyak rate of the target networks, applied after every gradient update")
+    actor_lr: float = doc(1e-3, "Adam learning rate of the actor")
+    critic_lr: float = doc(1e-3, "Adam learning rate of the critic, encoder, forward and inverse models")
+    action_l2: float = doc(1.0, "weight of the actor's action L2 penalty")
+    noise_eps: float = doc(0.2, "std of the Gaussian exploration noise on actions")
+    random_eps: float = doc(0.3, "probability of a uniformly random exploration action")
+    her_k: int = doc(4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)")
+    intrinsic_lambda: float = doc(0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)")
+    forward_weight: float = doc(1.0, "weight of the forward-model loss (Eq. 3) in the representation loss")
+    inverse_weight: float = doc(1.0, "weight of the inverse-model loss (Eq. 5) in the representation loss")
+    clip_obs: float = doc(5.0, "normalised proprio and goals are clipped to ±clip_obs")
+    eval_envs: int = doc(32, "deterministic evaluation episodes after each epoch")
+    grad_clip: float = doc(10.0, "global gradient-norm clip of every optimiser")
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """One run: which task, which agent, how long, where to write."""
+
+    env: str = doc("planar_reach", "environment name")
+    agent: str = doc("multimodal_bidal", "agent name")
+    seeds: int = doc(1, "seeds trained together as one vmapped program")
+    seed: int = doc(0, "first random seed; seeds use seed, seed+1, ...")
+    epochs: int = doc(20, "training epochs")
+    checkpoint_every: int = doc(5, "save a checkpoint every K epochs (and at the end)")
+    run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>")
+    target_success: float = doc(0.0, "stop early once the mean eval success reaches this (0: never)")
+
+
+def fields_help(cls: type) -> dict[str, str]:
+    """Field name -> documentation of a config dataclass."""
+    return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(cls)}
+
+
+# Per-env overrides of the defaults above (then the command line overrides these).
+# Keys: "run", "train", "network"; values: field -> value.
+ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "planar_reach": {},
+}
+# Per-agent overrides of the env presets, for agents that learn from images.
+IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
+
+
+def env_preset(env: str, agent: str) -> dict[str, dict[str, Any]]:
+    """The overrides for `env` (and for an image `agent` on it): {"run"|"train"|"network": {...}}."""
+    preset = {k: dict(v) for k, v in ENV_PRESETS.get(env, {}).items()}
+    if agent in AGENTS and AGENTS[agent].uses_image:
+        for group, values in IMAGE_AGENT_PRESETS.get(env, {}).items():
+            preset.setdefault(group, {}).update(values)
+    return preset

@@ -1,0 +1,96 @@
+"""Losses of DDPG + HER with the BidAL forward and inverse models (paper Sec. III).
+
+- Intrinsic reward (Eq. 4): r_i = -λ/2 ‖f(φ(s_t), a_t) - φ(s_{t+1})‖².
+- Critic (Eq. 8): (Q(s_t, a_t, g) - y_t)², y_t = clip(r_e + r_i + γ Q'(s_{t+1}, μ'(s_{t+1}, g), g),
+  -1/(1-γ), 0), with target networks Q', μ' and target encoder φ'.
+- Forward model (Eq. 3): e = ½‖f(φ(s_t), a_t) - sg[φ(s_{t+1})]‖²; inverse model (Eq. 5):
+  ½‖g(φ(s_t), φ(s_{t+1})) - a_t‖².
+- Actor (Eq. 7, DDPG): -Q(s, μ(s, g), g) + c‖μ(s, g)‖², on a stopped φ(s).
+
+The encoder φ learns from the critic, forward and inverse losses together (the
+"representation loss"); the actor never changes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from bidal_jax.config import TrainConfig
+from bidal_jax.networks import Networks
+
+
+def intrinsic_reward(predicted_next_phi: jax.Array, next_phi: jax.Array, lam: float) -> jax.Array:
+    """Paper Eq. 4: -λ/2 ‖φ̂(s_{t+1}) - φ(s_{t+1})‖², per transition."""
+    chex.assert_equal_shape([predicted_next_phi, next_phi])
+    return -0.5 * lam * jnp.sum(jnp.square(predicted_next_phi - next_phi), axis=-1)
+
+
+def critic_target(reward: jax.Array, next_q: jax.Array, gamma: float) -> jax.Array:
+    """Eq. 8's target y = r + γQ', clipped to the return range [-1/(1-γ), 0] of rewards ≤ 0."""
+    chex.assert_equal_shape([reward, next_q])
+    return jnp.clip(reward + gamma * next_q, -1.0 / (1.0 - gamma), 0.0)
+
+
+def half_squared_error(pred: jax.Array, target: jax.Array) -> jax.Array:
+    """½‖pred - target‖² per row (Eqs. 3 and 5)."""
+    chex.assert_equal_shape([pred, target])
+    return 0.5 * jnp.sum(jnp.square(pred - target), axis=-1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Losses:
+    """`representation(params, target_params, batch) -> (loss, aux)` trains encoder, critic,
+    forward and inverse models; `actor(actor_params, params, batch) -> (loss, aux)` trains
+    the actor on `batch["phi"]` (the stopped φ(s) from the representation step)."""
+
+    representation: Callable
+    actor: Callable
+
+
+def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
+    def encode_pair(enc_params, batch):
+        """φ(s_t) and φ(s_{t+1}) in one encoder pass."""
+        images = None
+        if "image" in batch:
+            images = jnp.concatenate([batch["image"], batch["next_image"]])
+        phis = networks.encode(enc_params, images, jnp.concatenate([batch["proprio"], batch["next_proprio"]]))
+        return jnp.split(phis, 2)
+
+    def representation(params, target_params, batch):
+        chex.assert_rank([batch["proprio"], batch["goal"], batch["action"]], 2)
+        chex.assert_rank(batch["reward"], 1)
+        phi, next_phi = encode_pair(params.get("encoder"), batch)
+        target_next_phi = networks.encode(target_params.get("encoder"), batch.get("next_image"), batch["next_proprio"])
+        next_action = networks.actor(target_params["actor"], target_next_phi, batch["goal"])
+        next_q = networks.critic(target_params["critic"], target_next_phi, next_action, batch["goal"])
+        reward = batch["reward"]
+        aux = {}
+        loss = 0.0
+        if bidal:
+            predicted = networks.forward(params["forward"], phi, batch["action"])
+            r_i = jax.lax.stop_gradient(intrinsic_reward(predicted, next_phi, config.intrinsic_lambda))
+            forward_loss = half_squared_error(predicted, jax.lax.stop_gradient(next_phi)).mean()
+            inverse_loss = half_squared_error(networks.inverse(params["inverse"], phi, next_phi), batch["action"]).mean()
+            loss = config.forward_weight * forward_loss + config.inverse_weight * inverse_loss
+            reward = reward + r_i
+            aux.update(forward_loss=forward_loss, inverse_loss=inverse_loss, intrinsic_reward=r_i.mean())
+        y = jax.lax.stop_gradient(critic_target(reward, next_q, config.gamma))
+        q = networks.critic(params["critic"], phi, batch["action"], batch["goal"])
+        critic_loss = jnp.mean(jnp.square(q - y))
+        aux.update(critic_loss=critic_loss, q=q.mean(), phi=jax.lax.stop_gradient(phi))
+        return loss + critic_loss, aux
+
+    def actor(actor_params, params, batch):
+        phi, goal = batch["phi"], batch["goal"]
+        chex.assert_rank([phi, goal], 2)
+        action = networks.actor(actor_params, phi, goal)
+        q = networks.critic(params["critic"], phi, action, goal)
+        loss = -q.mean() + config.action_l2 * jnp.mean(jnp.square(action))
+        return loss, {"actor_loss": loss}
+
+    return Losses(representation=representation, actor=actor)

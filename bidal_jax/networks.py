@@ -1,0 +1,178 @@
+"""Flax networks of multimodal BidAL (paper Sec. III-B, III-C; Fig. 2).
+
+- `Encoder`: φ(s) (Eq. 1). Vision branch: four 3×3 conv layers with ELU and a dense
+  layer; proprio branch: one dense layer; the branches are concatenated and one dense
+  layer (LayerNorm + tanh) gives φ(s). The visual agents use the vision branch alone;
+  the proprio baseline has no learned encoder (φ(s) is the normalised proprio).
+- `Actor` μ(ψ(s), η(g)) and `Critic` Q(ψ(s), a, η(g)): UVFA goal embeddings (Sec. III-C.2).
+- `ForwardModel` f(φ(s), a) → φ̂(s') (Eq. 2) and `InverseModel` g(φ(s), φ(s')) → â (Eq. 5),
+  two dense layers each.
+
+`make_networks` builds the set an agent needs and returns pure init/apply functions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import chex
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from bidal_jax.config import AgentSpec, NetworkConfig
+
+
+class VisionBranch(nn.Module):
+    """Four stride-2 conv layers with ELU, then a dense layer (42×42 → 3×3 → features)."""
+
+    channels: int
+    features: int
+
+    @nn.compact
+    def __call__(self, image: jax.Array) -> jax.Array:
+        chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
+        x = image.astype(jnp.float32) / 255.0
+        for _ in range(4):
+            x = nn.elu(nn.Conv(self.channels, (3, 3), strides=(2, 2), padding="SAME")(x))
+        x = x.reshape(x.shape[0], -1)
+        return nn.elu(nn.Dense(self.features)(x))
+
+
+class Encoder(nn.Module):
+    """φ(s): the multimodal (or visual-only) encoder, paper Eq. 1."""
+
+    config: NetworkConfig
+    uses_proprio: bool
+
+    @nn.compact
+    def __call__(self, image: jax.Array, proprio: jax.Array) -> jax.Array:
+        chex.assert_rank(proprio, 2)
+        cfg = self.config
+        parts = [VisionBranch(cfg.conv_channels, cfg.vision_features)(image)]
+        if self.uses_proprio:
+            parts.append(nn.elu(nn.Dense(cfg.proprio_features)(proprio)))
+        x = nn.Dense(cfg.latent_size)(jnp.concatenate(parts, axis=-1))
+        return jnp.tanh(nn.LayerNorm()(x))
+
+
+def _mlp(x: jax.Array, width: int, layers: int) -> jax.Array:
+    for _ in range(layers):
+        x = nn.relu(nn.Dense(width)(x))
+    return x
+
+
+class Actor(nn.Module):
+    """μ(ψ(s), η(g)) ∈ [-1, 1]^A with UVFA embeddings of state and goal."""
+
+    config: NetworkConfig
+    action_size: int
+
+    @nn.compact
+    def __call__(self, phi: jax.Array, goal: jax.Array) -> jax.Array:
+        chex.assert_rank([phi, goal], 2)
+        cfg = self.config
+        psi = nn.elu(nn.Dense(cfg.embed_size, name="psi")(phi))
+        eta = nn.elu(nn.Dense(cfg.embed_size, name="eta")(goal))
+        x = _mlp(jnp.concatenate([psi, eta], axis=-1), cfg.hidden_size, cfg.hidden_layers)
+        return jnp.tanh(nn.Dense(self.action_size)(x))
+
+
+class Critic(nn.Module):
+    """Q(ψ(s), a, η(g)) with UVFA embeddings of state and goal."""
+
+    config: NetworkConfig
+
+    @nn.compact
+    def __call__(self, phi: jax.Array, action: jax.Array, goal: jax.Array) -> jax.Array:
+        chex.assert_rank([phi, action, goal], 2)
+        cfg = self.config
+        psi = nn.elu(nn.Dense(cfg.embed_size, name="psi")(phi))
+        eta = nn.elu(nn.Dense(cfg.embed_size, name="eta")(goal))
+        x = _mlp(jnp.concatenate([psi, action, eta], axis=-1), cfg.hidden_size, cfg.hidden_layers)
+        return nn.Dense(1)(x)[:, 0]
+
+
+class ForwardModel(nn.Module):
+    """f(φ(s), a) → φ̂(s'), two dense layers (paper Eq. 2)."""
+
+    config: NetworkConfig
+
+    @nn.compact
+    def __call__(self, phi: jax.Array, action: jax.Array) -> jax.Array:
+        chex.assert_rank([phi, action], 2)
+        x = nn.elu(nn.Dense(self.config.model_hidden_size)(jnp.concatenate([phi, action], axis=-1)))
+        return nn.Dense(phi.shape[-1])(x)
+
+
+class InverseModel(nn.Module):
+    """g(φ(s), φ(s')) → â ∈ [-1, 1]^A, two dense layers (paper Eq. 5)."""
+
+    config: NetworkConfig
+    action_size: int
+
+    @nn.compact
+    def __call__(self, phi: jax.Array, next_phi: jax.Array) -> jax.Array:
+        chex.assert_rank([phi, next_phi], 2)
+        x = nn.elu(nn.Dense(self.config.model_hidden_size)(jnp.concatenate([phi, next_phi], axis=-1)))
+        return jnp.tanh(nn.Dense(self.action_size)(x))
+
+
+@dataclasses.dataclass(frozen=True)
+class Networks:
+    """Pure apply functions of one agent's networks, and their joint initialiser.
+
+    Every apply takes the parameter subtree of its network: `params["encoder"]`, ...
+    `encode(params, image, proprio)` is the identity on proprio for the proprio baseline.
+    """
+
+    init: Callable[[jax.Array], dict]
+    encode: Callable[..., jax.Array]
+    actor: Callable[..., jax.Array]
+    critic: Callable[..., jax.Array]
+    forward: Callable[..., jax.Array] | None
+    inverse: Callable[..., jax.Array] | None
+    latent_size: int
+
+
+def make_networks(
+    spec: AgentSpec, config: NetworkConfig, proprio_size: int, goal_size: int, action_size: int, image_shape
+) -> Networks:
+    """Build the networks agent `spec` needs; `init(key)` returns a dict of param subtrees."""
+    actor, critic = Actor(config, action_size), Critic(config)
+    latent = config.latent_size if spec.uses_image else proprio_size
+    encoder = Encoder(config, spec.uses_proprio) if spec.uses_image else None
+    fwd = ForwardModel(config) if spec.bidal else None
+    inv = InverseModel(config, action_size) if spec.bidal else None
+
+    def init(key: jax.Array) -> dict:
+        keys = dict(zip(("encoder", "actor", "critic", "forward", "inverse"), jax.random.split(key, 5)))
+        phi = jnp.zeros((1, latent))
+        goal, action = jnp.zeros((1, goal_size)), jnp.zeros((1, action_size))
+        params = {
+            "actor": actor.init(keys["actor"], phi, goal),
+            "critic": critic.init(keys["critic"], phi, action, goal),
+        }
+        if encoder is not None:
+            image = jnp.zeros((1, *image_shape), jnp.uint8)
+            params["encoder"] = encoder.init(keys["encoder"], image, jnp.zeros((1, proprio_size)))
+        if spec.bidal:
+            params["forward"] = fwd.init(keys["forward"], phi, action)
+            params["inverse"] = inv.init(keys["inverse"], phi, phi)
+        return params
+
+    def encode(params: dict, image: jax.Array, proprio: jax.Array) -> jax.Array:
+        if encoder is None:
+            return proprio
+        return encoder.apply(params, image, proprio)
+
+    return Networks(
+        init=init,
+        encode=encode,
+        actor=actor.apply,
+        critic=critic.apply,
+        forward=fwd.apply if fwd else None,
+        inverse=inv.apply if inv else None,
+        latent_size=latent,
+    )

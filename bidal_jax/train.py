@@ -1,0 +1,185 @@
+"""The training loop as pure functions: `make_train(env, agent, ...) -> (init, epoch)`.
+
+`epoch` is ONE jit-able function: a `lax.scan` over cycles of (vectorised rollout of all
+parallel envs with exploration, buffer insert, normaliser update, n gradient updates,
+target update after every gradient step), then deterministic evaluation rollouts. Seeds are a `vmap` over
+`init`/`epoch` (see `make_seeded`). Python only runs the outer loop.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import chex
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from bidal_jax import normalizer, replay
+from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
+from bidal_jax.losses import make_losses
+from bidal_jax.networks import make_networks
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a run needs to continue: parameters, optimisers, targets, data, rng."""
+
+    params: dict
+    target_params: dict
+    opt_state: dict
+    proprio_norm: normalizer.NormalizerState
+    goal_norm: normalizer.NormalizerState
+    buffer: replay.ReplayState
+    key: jax.Array
+    env_steps: jax.Array
+    updates: jax.Array
+    epoch: jax.Array
+
+
+def _optimizer(lr: float, grad_clip: float) -> optax.GradientTransformation:
+    return optax.chain(optax.clip_by_global_norm(grad_clip), optax.adam(lr))
+
+
+def polyak(target: Any, online: Any, tau: float) -> Any:
+    """target ← (1 - τ) target + τ online."""
+    return jax.tree.map(lambda t, o: (1.0 - tau) * t + tau * o, target, online)
+
+
+def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainConfig):
+    """Build `init(key) -> TrainState` and `epoch(TrainState) -> (TrainState, metrics)`."""
+    spec = env.observation_spec
+    horizon = env.episode_length
+    networks = make_networks(agent, net_config, spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)
+    losses = make_losses(networks, config, agent.bidal)
+    rep_opt = _optimizer(config.critic_lr, config.grad_clip)
+    actor_opt = _optimizer(config.actor_lr, config.grad_clip)
+    future_p = 1.0 - 1.0 / (1.0 + config.her_k)
+    rep_keys = ("encoder", "critic", "forward", "inverse")
+
+    def rep_params(params):
+        return {k: v for k, v in params.items() if k in rep_keys}
+
+    def normalize_proprio(ts, x):
+        return normalizer.normalize(ts.proprio_norm, x, config.clip_obs)
+
+    def normalize_goal(ts, x):
+        return normalizer.normalize(ts.goal_norm, x, config.clip_obs)
+
+    def policy(ts, obs):
+        image = obs["image"] if agent.uses_image else None
+        phi = networks.encode(ts.params.get("encoder"), image, normalize_proprio(ts, obs["proprio"]))
+        return networks.actor(ts.params["actor"], phi, normalize_goal(ts, obs["desired_goal"]))
+
+    def rollout(ts, key, n_envs: int, explore: bool):
+        """n_envs full episodes; returns (episodes, success at the last step)."""
+        key_reset, key_steps = jax.random.split(key)
+        state = jax.vmap(env.reset)(jax.random.split(key_reset, n_envs))
+
+        def step(state, key):
+            obs = state.obs
+            action = policy(ts, obs)
+            if explore:
+                key_noise, key_random, key_pick = jax.random.split(key, 3)
+                action = jnp.clip(action + config.noise_eps * jax.random.normal(key_noise, action.shape), -1.0, 1.0)
+                random_action = jax.random.uniform(key_random, action.shape, minval=-1.0, maxval=1.0)
+                pick = jax.random.uniform(key_pick, (n_envs, 1)) < config.random_eps
+                action = jnp.where(pick, random_action, action)
+            next_state = jax.vmap(env.step)(state, action)
+            return next_state, (obs, action)
+
+        final, (obs, actions) = jax.lax.scan(step, state, jax.random.split(key_steps, horizon))
+
+        def with_final(x, last):  # [T, N, ...] + [N, ...] -> [N, T+1, ...]
+            return jnp.swapaxes(jnp.concatenate([x, last[None]]), 0, 1)
+
+        episodes = {
+            "proprio": with_final(obs["proprio"], final.obs["proprio"]),
+            "achieved_goal": with_final(obs["achieved_goal"], final.obs["achieved_goal"]),
+            "desired_goal": final.obs["desired_goal"],
+            "action": jnp.swapaxes(actions, 0, 1),
+        }
+        if agent.uses_image:
+            episodes["image"] = with_final(obs["image"], final.obs["image"])
+        return episodes, final.metrics["success"].mean()
+
+    example_episode = {
+        "proprio": jnp.zeros((horizon + 1, spec.proprio_size), jnp.float32),
+        "achieved_goal": jnp.zeros((horizon + 1, spec.goal_size), jnp.float32),
+        "desired_goal": jnp.zeros((spec.goal_size,), jnp.float32),
+        "action": jnp.zeros((horizon, env.action_size), jnp.float32),
+    }
+    if agent.uses_image:
+        example_episode["image"] = jnp.zeros((horizon + 1, *spec.image_shape), jnp.uint8)
+
+    def init(key: jax.Array) -> TrainState:
+        key_params, key_state = jax.random.split(key)
+        params = networks.init(key_params)
+        return TrainState(
+            params=params,
+            target_params=params,
+            opt_state={"representation": rep_opt.init(rep_params(params)), "actor": actor_opt.init(params["actor"])},
+            proprio_norm=normalizer.init(spec.proprio_size),
+            goal_norm=normalizer.init(spec.goal_size),
+            buffer=replay.init(config.buffer_episodes, example_episode),
+            key=key_state,
+            env_steps=jnp.zeros((), jnp.int32),
+            updates=jnp.zeros((), jnp.int32),
+            epoch=jnp.zeros((), jnp.int32),
+        )
+
+    def update(ts: TrainState, key: jax.Array):
+        """One gradient step of the representation group (encoder, critic, f, g) and the actor."""
+        batch = replay.sample(ts.buffer, key, config.batch_size, future_p, env.compute_reward)
+        batch = {
+            **batch,
+            "proprio": normalize_proprio(ts, batch["proprio"]),
+            "next_proprio": normalize_proprio(ts, batch["next_proprio"]),
+            "goal": normalize_goal(ts, batch["goal"]),
+        }
+        rp = rep_params(ts.params)
+        grads, aux = jax.grad(losses.representation, has_aux=True)(rp, ts.target_params, batch)
+        updates, rep_state = rep_opt.update(grads, ts.opt_state["representation"], rp)
+        params = {**ts.params, **optax.apply_updates(rp, updates)}
+        actor_grads, actor_aux = jax.grad(losses.actor, has_aux=True)(params["actor"], params, {**batch, "phi": aux.pop("phi")})
+        actor_updates, actor_state = actor_opt.update(actor_grads, ts.opt_state["actor"], params["actor"])
+        params["actor"] = optax.apply_updates(params["actor"], actor_updates)
+        ts = ts.replace(
+            params=params,
+            target_params=polyak(ts.target_params, params, config.tau),
+            opt_state={"representation": rep_state, "actor": actor_state},
+            updates=ts.updates + 1,
+        )
+        return ts, {**aux, **actor_aux}
+
+    def cycle(ts: TrainState, _):
+        key, key_rollout, key_updates = jax.random.split(ts.key, 3)
+        episodes, train_success = rollout(ts, key_rollout, config.num_envs, explore=True)
+        ts = ts.replace(
+            key=key,
+            buffer=replay.insert(ts.buffer, episodes),
+            proprio_norm=normalizer.update(ts.proprio_norm, episodes["proprio"]),
+            goal_norm=normalizer.update(ts.goal_norm, episodes["achieved_goal"]),
+            env_steps=ts.env_steps + config.num_envs * horizon,
+        )
+        ts, metrics = jax.lax.scan(update, ts, jax.random.split(key_updates, config.updates_per_cycle))
+        return ts, {**jax.tree.map(jnp.mean, metrics), "train_success": train_success}
+
+    def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
+        ts, metrics = jax.lax.scan(cycle, ts, None, length=config.cycles_per_epoch)
+        key, key_eval = jax.random.split(ts.key)
+        _, eval_success = rollout(ts, key_eval, config.eval_envs, explore=False)
+        ts = ts.replace(key=key, epoch=ts.epoch + 1)
+        metrics = {**jax.tree.map(jnp.mean, metrics), "eval_success": eval_success, "env_steps": ts.env_steps}
+        return ts, metrics
+
+    return init, epoch
+
+
+def make_seeded(init: Callable, epoch: Callable):
+    """Seeds as one vmapped, jitted program: `init(keys[S]) -> TrainState[S]`, `epoch`.
+
+    The epoch may be traced (compiled) only once: a second trace raises an error.
+    """
+    return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(chex.assert_max_traces(epoch, n=1)), donate_argnums=0)

@@ -1,0 +1,59 @@
+"""Replay buffer and HER `future` relabelling (bidal_jax/replay.py)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bidal_jax import replay
+
+T, G = 5, 2
+
+
+def _episodes(n, offset):
+    """Episodes whose achieved goal at step t of episode i is (offset + i, t): traceable."""
+    i = jnp.arange(n, dtype=jnp.float32)[:, None] + offset
+    t = jnp.arange(T + 1, dtype=jnp.float32)[None, :]
+    ag = jnp.stack(jnp.broadcast_arrays(i, t), axis=-1)
+    return {
+        "proprio": ag,
+        "achieved_goal": ag,
+        "desired_goal": jnp.full((n, G), -7.0),
+        "action": jnp.zeros((n, T, 1)),
+    }
+
+
+def _reward(ag, g):
+    return -(jnp.linalg.norm(ag - g, axis=-1) > 0.5).astype(jnp.float32)
+
+
+def test_insert_wraps_around_and_counts():
+    state = replay.init(4, jax.tree.map(lambda x: x[0], _episodes(1, 0)))
+    state = replay.insert(state, _episodes(2, 0))
+    assert int(state.size) == 2 and int(state.position) == 2
+    state = replay.insert(state, _episodes(2, 10))
+    state = replay.insert(state, _episodes(2, 20))
+    assert int(state.size) == 4 and int(state.position) == 2
+    np.testing.assert_array_equal(np.asarray(state.episodes["achieved_goal"][:, 0, 0]), [20, 21, 10, 11])
+
+
+def test_her_goals_are_later_achieved_goals_of_the_same_episode_with_recomputed_rewards():
+    state = replay.init(8, jax.tree.map(lambda x: x[0], _episodes(1, 0)))
+    state = replay.insert(state, _episodes(8, 100))
+    batch = jax.jit(replay.sample, static_argnums=(2, 3, 4))(state, jax.random.PRNGKey(0), 4096, 0.8, _reward)
+    goal, ep, t = np.asarray(batch["goal"]), np.asarray(batch["episode"]), np.asarray(batch["t"])
+    future_t = np.asarray(batch["future_t"])
+    relabelled = future_t >= 0
+    assert 0.75 < relabelled.mean() < 0.85
+    # a relabelled goal is the achieved goal (episode id, step) of the same episode, later
+    np.testing.assert_array_equal(goal[relabelled, 0], 100 + ep[relabelled])
+    np.testing.assert_array_equal(goal[relabelled, 1], future_t[relabelled])
+    assert (future_t[relabelled] > t[relabelled]).all() and (future_t[relabelled] <= T).all()
+    # the others keep the episode's desired goal
+    np.testing.assert_array_equal(goal[~relabelled], -7.0)
+    # rewards are recomputed against the (relabelled) goal at s_{t+1}
+    next_ag = np.stack([100 + ep, t + 1], axis=-1).astype(np.float32)
+    expected = -(np.linalg.norm(next_ag - goal, axis=-1) > 0.5).astype(np.float32)
+    np.testing.assert_array_equal(np.asarray(batch["reward"]), expected)
+    assert (np.asarray(batch["reward"])[future_t == t + 1] == 0).all()
+    # transitions pair s_t with s_{t+1}
+    np.testing.assert_array_equal(np.asarray(batch["next_proprio"])[:, 1], t + 1)

@@ -1,0 +1,50 @@
+"""Training: the epoch compiles once, and a short proprio run learns planar_reach."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+import envs_mjx
+from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
+from bidal_jax.train import make_seeded, make_train
+
+TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
+
+
+@pytest.mark.parametrize("agent", ["proprio_baseline", "multimodal_bidal"])
+def test_epoch_compiles_once_and_runs_for_several_seeds(agent):
+    spec = AGENTS[agent]
+    env = envs_mjx.make("planar_reach", render=spec.uses_image)
+    init, epoch = make_seeded(*make_train(env, spec, NetworkConfig(conv_channels=4), TINY))
+    state = init(jax.random.split(jax.random.PRNGKey(0), 2))
+    for _ in range(3):
+        state, metrics = epoch(state)
+    assert epoch._cache_size() == 1
+    assert metrics["eval_success"].shape == (2,)
+    assert np.asarray(state.env_steps).tolist() == [3 * 2 * 4 * 50] * 2
+    assert np.asarray(state.buffer.size).tolist() == [8, 8]
+    for key in ("critic_loss", "actor_loss", "q", "train_success"):
+        assert np.isfinite(np.asarray(metrics[key])).all(), key
+    if spec.bidal:
+        assert (np.asarray(metrics["intrinsic_reward"]) <= 0).all()
+        assert np.isfinite(np.asarray(metrics["inverse_loss"])).all()
+    # seeds differ
+    leaves = jax.tree.leaves(state.params["actor"])
+    assert not np.array_equal(np.asarray(leaves[0][0]), np.asarray(leaves[0][1]))
+
+
+@pytest.mark.slow
+def test_proprio_baseline_learns_planar_reach():
+    env = envs_mjx.make("planar_reach", render=False)
+    config = dataclasses.replace(TrainConfig(), eval_envs=64)
+    init, epoch = make_seeded(*make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), config))
+    state = init(jax.random.split(jax.random.PRNGKey(0), 1))
+    best = 0.0
+    for _ in range(40):
+        state, metrics = epoch(state)
+        best = max(best, float(metrics["eval_success"][0]))
+        if best >= 0.8:
+            break
+    assert best >= 0.8
