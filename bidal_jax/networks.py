@@ -25,7 +25,12 @@ from bidal_jax.config import AgentSpec, NetworkConfig
 
 
 class VisionBranch(nn.Module):
-    """Four stride-2 conv layers with ELU, then a dense layer (42×42 → 3×3 → features)."""
+    """Four conv layers with ELU, then a dense layer: 42×42 → 14×14 → 7×7 → 4×4 → 2×2 → features.
+
+    The paper gives no strides. The first layer is a 3×3 stride-3 conv (non-overlapping
+    patches) and the next three are 3×3 stride-2 convs: on a CPU, XLA's stride-2 conv over
+    the full 42×42 frame costs six times more per gradient step for little gain.
+    """
 
     channels: int
     features: int
@@ -34,7 +39,8 @@ class VisionBranch(nn.Module):
     def __call__(self, image: jax.Array) -> jax.Array:
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
         x = image.astype(jnp.float32) / 255.0
-        for _ in range(4):
+        x = nn.elu(nn.Conv(self.channels, (3, 3), strides=(3, 3), padding="VALID")(x))
+        for _ in range(3):
             x = nn.elu(nn.Conv(self.channels, (3, 3), strides=(2, 2), padding="SAME")(x))
         x = x.reshape(x.shape[0], -1)
         return nn.elu(nn.Dense(self.features)(x))

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Any, Callable
 
-import chex
 import jax
 import jax.numpy as jnp
 import optax
@@ -178,8 +177,5 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
 
 
 def make_seeded(init: Callable, epoch: Callable):
-    """Seeds as one vmapped, jitted program: `init(keys[S]) -> TrainState[S]`, `epoch`.
-
-    The epoch may be traced (compiled) only once: a second trace raises an error.
-    """
-    return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(chex.assert_max_traces(epoch, n=1)), donate_argnums=0)
+    """Seeds as one vmapped, jitted program: `init(keys[S]) -> TrainState[S]`, `epoch`."""
+    return jax.jit(jax.vmap(init)), jax.jit(jax.vmap(epoch), donate_argnums=0)

@@ -146,8 +146,18 @@ def train(run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, quiet: boo
     return row
 
 
+def enable_compilation_cache() -> None:
+    """JAX's persistent compilation cache, so that a second run of a config skips compiling."""
+    import jax
+
+    cache = os.environ.get("BIDAL_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "bidal_jax", "xla"))
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    enable_compilation_cache()
     run, train_cfg, net = configs_from_args(args)
     if not run.run_dir:
         run = dataclasses.replace(run, run_dir=os.path.join("runs", f"{run.env}-{run.agent}-{time.strftime('%Y%m%d-%H%M%S')}"))

@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import chex
 import jax
 import numpy as np
 import pytest
@@ -17,7 +18,9 @@ TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_si
 def test_epoch_compiles_once_and_runs_for_several_seeds(agent):
     spec = AGENTS[agent]
     env = envs_mjx.make("planar_reach", render=spec.uses_image)
-    init, epoch = make_seeded(*make_train(env, spec, NetworkConfig(conv_channels=4), TINY))
+    chex.clear_trace_counter()
+    init, epoch = make_train(env, spec, NetworkConfig(conv_channels=4), TINY)
+    init, epoch = make_seeded(init, chex.assert_max_traces(epoch, n=1))
     state = init(jax.random.split(jax.random.PRNGKey(0), 2))
     for _ in range(3):
         state, metrics = epoch(state)

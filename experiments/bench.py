@@ -1,0 +1,143 @@
+"""Throughput benchmark: env steps per second of MJX physics, physics + camera, whole
+training epochs, and native MuJoCo (`mujoco.rollout`, 2 threads) as the yardstick.
+
+    python -m experiments.bench                       # planar_reach, 64/256/1024 envs
+    python -m experiments.bench --envs ur5_reach nicol_slide --num-envs 64 256
+    python -m experiments.bench --skip-train --json out.json
+
+One env step is one 0.04 s control period (several physics substeps). Each figure is the
+median of `--repeats` timed runs after a warm-up (compilation excluded); it prints a
+Markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import statistics
+import time
+
+import jax
+import numpy as np
+
+import envs_mjx
+from bidal_jax.config import NetworkConfig, TrainConfig, agent_spec, env_preset
+from bidal_jax.train import make_seeded, make_train
+
+
+def _timed(fn, repeats: int) -> float:
+    """Median seconds of `fn()` (which blocks) over `repeats` runs, after one warm-up."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def env_steps_per_second(name: str, num_envs: int, render: bool, steps: int, repeats: int) -> float:
+    """Random-action rollout of `steps` control periods in `num_envs` vmapped envs, in one jit."""
+    env = envs_mjx.make(name, render=render)
+
+    @jax.jit
+    def run(key):
+        key_reset, key_act = jax.random.split(key)
+        state = jax.vmap(env.reset)(jax.random.split(key_reset, num_envs))
+
+        def body(state, k):
+            action = jax.random.uniform(k, (num_envs, env.action_size), minval=-1.0, maxval=1.0)
+            return jax.vmap(env.step)(state, action), ()
+
+        state, _ = jax.lax.scan(body, state, jax.random.split(key_act, steps))
+        return state.obs["proprio"].sum() + state.obs["image"].sum()
+
+    key = jax.random.PRNGKey(0)
+    seconds = _timed(lambda: run(key).block_until_ready(), repeats)
+    return num_envs * steps / seconds
+
+
+def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int) -> float:
+    """Env steps per second of whole training epochs (rollouts, updates, evaluation)."""
+    spec = agent_spec(agent)
+    preset = env_preset(name, agent)
+    config = dataclasses.replace(
+        TrainConfig(**preset.get("train", {})),
+        num_envs=num_envs,
+        buffer_episodes=max(num_envs * 4, TrainConfig().buffer_episodes // num_envs * num_envs),
+        cycles_per_epoch=2,
+    )
+    env = envs_mjx.make(name, render=spec.uses_image)
+    init, epoch = make_seeded(*make_train(env, spec, NetworkConfig(**preset.get("network", {})), config))
+    holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), 1))}
+
+    def one_epoch():
+        holder["state"], metrics = epoch(holder["state"])
+        jax.block_until_ready(metrics)
+
+    seconds = _timed(one_epoch, repeats)
+    return config.cycles_per_epoch * num_envs * env.episode_length / seconds
+
+
+def native_steps_per_second(name: str, num_envs: int, steps: int, repeats: int, threads: int = 2) -> float:
+    """Native MuJoCo through `mujoco.rollout` with `threads` threads, random controls."""
+    import mujoco
+    from mujoco import rollout
+
+    env = envs_mjx.make(name, render=False)
+    model = env.mj_model
+    datas = [mujoco.MjData(model) for _ in range(threads)]
+    state0 = np.zeros((mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS),))
+    mujoco.mj_getState(model, datas[0], state0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    nstep = steps * env.n_substeps
+    rng = np.random.default_rng(0)
+    low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
+    control = rng.uniform(low, high, size=(num_envs, steps, 1, model.nu)).repeat(env.n_substeps, axis=2)
+    control = control.reshape(num_envs, nstep, model.nu)
+    initial = np.tile(state0, (num_envs, 1))
+
+    def run():
+        rollout.rollout(model, datas, initial, control, nstep=nstep, persistent_pool=True)
+
+    seconds = _timed(run, repeats)
+    return num_envs * steps / seconds
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--envs", nargs="+", default=["planar_reach"], choices=envs_mjx.names())
+    parser.add_argument("--num-envs", nargs="+", type=int, default=[64, 256, 1024])
+    parser.add_argument("--steps", type=int, default=50, help="control periods per timed rollout")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs per figure (median)")
+    parser.add_argument("--agent", default="proprio_baseline", help="agent of the training-epoch figure")
+    parser.add_argument("--skip-train", action="store_true", help="skip the training-epoch figures")
+    parser.add_argument("--skip-native", action="store_true", help="skip native MuJoCo")
+    parser.add_argument("--json", default="", help="also write the figures to this JSON file")
+    args = parser.parse_args(argv)
+
+    device = jax.devices()[0]
+    print(f"device: {device.platform} ({device.device_kind}), {jax.device_count()} device(s)")
+    rows = []
+    for name in args.envs:
+        for n in args.num_envs:
+            row = {"env": name, "num_envs": n}
+            row["physics"] = env_steps_per_second(name, n, False, args.steps, args.repeats)
+            row["physics+camera"] = env_steps_per_second(name, n, True, args.steps, args.repeats)
+            if not args.skip_train:
+                row[f"train epoch ({args.agent})"] = training_steps_per_second(name, args.agent, n, args.repeats)
+            if not args.skip_native:
+                row["native mujoco.rollout (2 threads)"] = native_steps_per_second(name, n, args.steps, args.repeats)
+            rows.append(row)
+            print(" ".join(f"{k}={v:.0f}" if isinstance(v, float) else f"{k}={v}" for k, v in row.items()), flush=True)
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    print("\n| " + " | ".join(columns) + " |\n|" + " --- |" * len(columns))
+    for row in rows:
+        print("| " + " | ".join(f"{row[c]:,.0f}" if isinstance(row.get(c), float) else str(row.get(c, "")) for c in columns) + " |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"device": str(device), "rows": rows}, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()
