@@ -96,3 +96,16 @@ def test_normalizer_by_hand():
     np.testing.assert_allclose(state.mean, [2.0, 10.0])
     np.testing.assert_allclose(state.std, [1.0, normalizer.MIN_STD])
     np.testing.assert_allclose(normalizer.normalize(state, jnp.array([4.0, 10.0]), 5.0), [2.0, 0.0])
+
+
+@pytest.mark.parametrize("size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME")])
+def test_patch_conv_equals_flax_conv(size, stride, padding):
+    import flax.linen as nn
+
+    from bidal_jax.networks import PatchConv
+
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
+    reference = nn.Conv(5, (3, 3), strides=(stride, stride), padding=padding)
+    params = reference.init(jax.random.PRNGKey(1), x)
+    ours = PatchConv(5, stride=stride, padding=padding).apply(params, x)
+    np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
