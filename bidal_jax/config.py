@@ -75,7 +75,7 @@ class TrainConfig:
     forward_weight: float = doc(1.0, "weight of the forward-model loss (Eq. 3) in the representation loss")
     inverse_weight: float = doc(1.0, "weight of the inverse-model loss (Eq. 5) in the representation loss")
     clip_obs: float = doc(5.0, "normalised proprio and goals are clipped to ±clip_obs")
-    eval_envs: int = doc(32, "deterministic evaluation episodes after each epoch")
+    eval_envs: int = doc(64, "deterministic evaluation episodes after each epoch")
     grad_clip: float = doc(10.0, "global gradient-norm clip of every optimiser")
 
 
@@ -101,10 +101,13 @@ def fields_help(cls: type) -> dict[str, str]:
 # Per-env overrides of the defaults above (then the command line overrides these).
 # Keys: "run", "train", "network"; values: field -> value.
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    "planar_reach": {},
+    "planar_reach": {"run": {"epochs": 40}},
+    "ur5_reach": {"run": {"epochs": 15}},
 }
 # Per-agent overrides of the env presets, for agents that learn from images.
-IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {}
+IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "planar_reach": {"run": {"epochs": 20}},
+}
 
 
 def env_preset(env: str, agent: str) -> dict[str, dict[str, Any]]:
