@@ -16,9 +16,6 @@ from envs_mjx.base import Env, ObservationSpec, State
 _REGISTRY: dict[str, str] = {
     "planar_reach": "envs_mjx.planar_reach:PlanarReach",
     "ur5_reach": "envs_mjx.ur5_reach:UR5Reach",
-    "nicol_slide": "envs_mjx.nicol:NicolSlide",
-    "nicol_lift": "envs_mjx.nicol:NicolLift",
-    "nicol_lift_reduced": "envs_mjx.nicol:make_reduced_lift",
 }
 
 
