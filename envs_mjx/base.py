@@ -217,3 +217,37 @@ class Env(abc.ABC):
     @staticmethod
     def _distance(obs: dict[str, jax.Array]) -> jax.Array:
         return jnp.linalg.norm(obs["achieved_goal"] - obs["desired_goal"])
+
+
+class JointReachEnv(Env):
+    """An arm whose action moves each joint's position target by at most `max_delta` rad from
+    the current angle (clipped to the joint ranges), with proprio (q, qdot): the reaching tasks.
+
+    Args:
+      mj_model: the model; one position actuator per hinge joint, in joint order.
+      max_delta: largest target increment per step (rad), reached at action ±1.
+      camera_name, episode_length, epsilon, goal_size, render: as for `Env`.
+    """
+
+    def __init__(self, mj_model, *, max_delta: float, goal_size: int, camera_name: str, episode_length: int,
+                 epsilon: float, render: bool):
+        n = mj_model.njnt
+        super().__init__(
+            mj_model,
+            episode_length=episode_length,
+            epsilon=epsilon,
+            action_size=n,
+            observation_spec=ObservationSpec(proprio_segments=(("q", n), ("qdot", n)), goal_size=goal_size),
+            camera_name=camera_name,
+            render=render,
+        )
+        self.max_delta = max_delta
+        self._q_low = jnp.asarray(mj_model.jnt_range[:, 0], jnp.float32)
+        self._q_high = jnp.asarray(mj_model.jnt_range[:, 1], jnp.float32)
+
+    def _apply_action(self, data, action):
+        target = jnp.clip(data.qpos + self.max_delta * action, self._q_low, self._q_high)
+        return data.replace(ctrl=target)
+
+    def _proprio(self, data):
+        return {"q": data.qpos, "qdot": data.qvel}

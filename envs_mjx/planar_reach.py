@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import mujoco
 from mujoco import mjx
 
-from envs_mjx.base import Env, ObservationSpec, load_model
+from envs_mjx.base import JointReachEnv, load_model
 
 LINK_LENGTH = 0.12
 MAX_DELTA = 0.2  # rad per step
@@ -28,7 +28,7 @@ def forward_kinematics(q: jax.Array) -> jax.Array:
     return jnp.stack([x, y], axis=-1)
 
 
-class PlanarReach(Env):
+class PlanarReach(JointReachEnv):
     """The planar reaching task; see the module docstring for the contract."""
 
     name = "planar_reach"
@@ -36,17 +36,9 @@ class PlanarReach(Env):
     def __init__(self, render: bool = True):
         mj_model = load_model("planar_reach.xml")
         super().__init__(
-            mj_model,
-            episode_length=50,
-            epsilon=0.02,
-            action_size=2,
-            observation_spec=ObservationSpec(proprio_segments=(("q", 2), ("qdot", 2)), goal_size=2),
-            camera_name="top",
-            render=render,
+            mj_model, max_delta=MAX_DELTA, goal_size=2, camera_name="top", episode_length=50, epsilon=0.02, render=render
         )
         self._ee_site = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, "ee")
-        self._q_low = jnp.asarray(mj_model.jnt_range[:, 0], jnp.float32)
-        self._q_high = jnp.asarray(mj_model.jnt_range[:, 1], jnp.float32)
 
     def _sample_q(self, key: jax.Array) -> jax.Array:
         return jax.random.uniform(key, (2,), minval=self._q_low, maxval=self._q_high)
@@ -62,13 +54,6 @@ class PlanarReach(Env):
             mocap_pos=data.mocap_pos.at[0].set(jnp.concatenate([goal, jnp.array([TARGET_HEIGHT])])),
         )
         return data, goal
-
-    def _apply_action(self, data, action):
-        target = jnp.clip(data.qpos + MAX_DELTA * action, self._q_low, self._q_high)
-        return data.replace(ctrl=target)
-
-    def _proprio(self, data):
-        return {"q": data.qpos, "qdot": data.qvel}
 
     def _achieved_goal(self, data):
         return data.site_xpos[self._ee_site, :2]

@@ -26,7 +26,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from envs_mjx.base import Env, ObservationSpec, load_model
+from envs_mjx.base import JointReachEnv, load_model
 
 # UR5 DH parameters (m), as in assets/ur5_reach.xml
 D1 = 0.089159  # shoulder-lift axis height above the base
@@ -71,7 +71,7 @@ def is_valid(q: jax.Array) -> jax.Array:
     return jnp.all(forward_kinematics(q)[..., 2] >= MIN_HEIGHT, axis=-1)
 
 
-class UR5Reach(Env):
+class UR5Reach(JointReachEnv):
     """The UR5 joint-space reaching task; see the module docstring for the contract."""
 
     name = "ur5_reach"
@@ -79,16 +79,8 @@ class UR5Reach(Env):
     def __init__(self, render: bool = True):
         mj_model = load_model("ur5_reach.xml")
         super().__init__(
-            mj_model,
-            episode_length=50,
-            epsilon=0.1,
-            action_size=3,
-            observation_spec=ObservationSpec(proprio_segments=(("q", 3), ("qdot", 3)), goal_size=3),
-            camera_name="front",
-            render=render,
+            mj_model, max_delta=MAX_DELTA, goal_size=3, camera_name="front", episode_length=50, epsilon=0.1, render=render
         )
-        self._q_low = jnp.asarray(mj_model.jnt_range[:, 0], jnp.float32)
-        self._q_high = jnp.asarray(mj_model.jnt_range[:, 1], jnp.float32)
         body_ids = [mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, f"goal_{n}") for n in POINT_NAMES]
         self._cube_mocap_ids = jnp.asarray(mj_model.body_mocapid[body_ids])
 
@@ -110,13 +102,6 @@ class UR5Reach(Env):
             mocap_pos=data.mocap_pos.at[self._cube_mocap_ids].set(forward_kinematics(goal)),
         )
         return data, goal
-
-    def _apply_action(self, data, action):
-        target = jnp.clip(data.qpos + MAX_DELTA * action, self._q_low, self._q_high)
-        return data.replace(ctrl=target)
-
-    def _proprio(self, data):
-        return {"q": data.qpos, "qdot": data.qvel}
 
     def _achieved_goal(self, data):
         return data.qpos
