@@ -103,6 +103,14 @@ def fields_help(cls: type) -> dict[str, str]:
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 40}},
     "ur5_reach": {"run": {"epochs": 15}},
+    # the NICOL tasks are sized for one GPU (README, "Results"): many parallel envs, big batches
+    **{
+        name: {
+            "run": {"epochs": 100},
+            "train": {"num_envs": 128, "batch_size": 1024, "buffer_episodes": 8192, "eval_envs": 128},
+        }
+        for name in ("nicol_slide", "nicol_lift", "nicol_lift_reduced")
+    },
 }
 # Per-agent overrides of the env presets, for agents that learn from images.
 IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {

@@ -8,19 +8,37 @@
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
+import os
 from typing import Any
 
-from envs_mjx.base import Env, ObservationSpec, State
+# XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
+# before the first computation. With its default fusion emitters XLA:CPU compiles MJX
+# steps in time that grows exponentially with the depth of the kinematic tree (the
+# nine-level NICOL arm: >6 min per step function instead of ~20 s); without them its
+# concurrency-optimised scheduler deadlocks nicol's step at 256 envs on 2 cores. Neither
+# flag affects GPUs; on planar/ur5 they cost <20 % of CPU physics throughput. XLA aborts
+# on flags it does not know, and newer releases dropped the first one, so they are set
+# only for the jaxlib they were measured with (the version pinned in pyproject.toml).
+_CPU_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_enable_concurrency_optimized_scheduler=false")
+_FLAGS_JAXLIB = "0.10.2"
+if importlib.metadata.version("jaxlib") == _FLAGS_JAXLIB:
+    for _flag in _CPU_FLAGS:
+        if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
+            os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
 
 # name -> "module:Class", imported lazily so that building one env never loads the others
 _REGISTRY: dict[str, str] = {
     "planar_reach": "envs_mjx.planar_reach:PlanarReach",
     "ur5_reach": "envs_mjx.ur5_reach:UR5Reach",
+    "nicol_slide": "envs_mjx.nicol:NicolSlide",
+    "nicol_lift": "envs_mjx.nicol:NicolLift",
+    "nicol_lift_reduced": "envs_mjx.nicol:make_reduced_lift",
 }
 
 
 def register(name: str, target: str) -> None:
-    """Register an env class given as "module:Class" under `name`."""
+    """Register an env class or factory function given as "module:name" under `name`."""
     _REGISTRY[name] = target
 
 

@@ -1,0 +1,280 @@
+"""nicol_slide and nicol_lift: NICOL's right arm and hand move a cube (paper Sec. III-D.3, TASKS.md).
+
+The scene (`assets/nicol.xml`, documented in `assets/README.md`) is NICOL's right
+OpenManipulator-P arm with a simplified RH8D hand at a table, a 0.05 m cube and a dark
+red ellipsoid goal marker, seen by the fixed head camera.
+
+Action (A = 7, paper Table I), each entry in [-1, 1]:
+  0-2  hand position increment in Cartesian space, at most `MAX_MOVE` = 0.05 m per axis;
+  3-4  hand roll and tilt increments, at most `MAX_TURN` = 0.1 rad per step;
+  5    finger closure, absolute: -1 open, +1 closed (one coupled flexion of all fingers);
+  6    thumb abduction, absolute: -1 along the palm, +1 opposing the fingers.
+
+The arm follows the Cartesian command as in the Fetch tasks: a mocap body, welded to the
+hand's grasp point, is set to `clip(hand + increment)` inside the workspace box, and the
+arm joints follow passively under a stiff weld (tracking error after one control period
+a few mm, under 1 cm; see tests/test_nicol.py). Roll and tilt are angles about the hand's own x
+(along the fingers) and y (across the palm) axes relative to the rest orientation,
+kept within `ROLL_RANGE` and `TILT_RANGE`.
+
+Proprio (D = 40, paper Table I), in this order: `ee_pos` 3 (the hand's grasp point),
+`ee_rot` 3, `obj_pos` 3, `obj_rot` 3, `obj_rel_pos` 3 (cube minus hand), `obj_velp` 3,
+`obj_velr` 3, `ee_velp` 3, `q` 8 (the six arm joints, finger closure, thumb abduction),
+`qdot` 8. Rotations are extrinsic x-y-z Euler angles (roll, pitch, yaw) of the world
+rotation, as in Gymnasium-Robotics' Fetch observations; velocities are world-frame m/s
+and rad/s. The RH8D wrist flexion joint that helps the arm reach is not part of `q`
+(TASKS.md fixes q to eight entries); its effect is seen through `ee_rot`.
+
+Goal (G = 3): the cube centre; ε = 0.05 m, T = 50 steps. The cube starts upright,
+aligned with the resting hand, uniformly within ±`CUBE_START_RANGE` (xy) of a point in
+front of the hand's rest position.
+- nicol_slide: goal on the table within ±`SLIDE_GOAL_RANGE` of the cube's start region.
+- nicol_lift: goal `LIFT_HEIGHT` above the table top within ±`LIFT_GOAL_RANGE` (xy) of
+  the cube's start.
+- nicol_lift_reduced (`make_reduced_lift`): lift without obj_rot, obj_velp, obj_velr and
+  obj_rel_pos (D = 28), for the transfer experiment (paper Sec. IV-C).
+"""
+
+from __future__ import annotations
+
+import abc
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from envs_mjx.base import Env, ObservationSpec, load_model
+from envs_mjx.wrappers import ReducedProprio
+
+PROPRIO_SEGMENTS = (
+    ("ee_pos", 3),
+    ("ee_rot", 3),
+    ("obj_pos", 3),
+    ("obj_rot", 3),
+    ("obj_rel_pos", 3),
+    ("obj_velp", 3),
+    ("obj_velr", 3),
+    ("ee_velp", 3),
+    ("q", 8),
+    ("qdot", 8),
+)
+REDUCED_DROP = ("obj_rot", "obj_velp", "obj_velr", "obj_rel_pos")
+
+EPISODE_LENGTH = 50
+EPSILON = 0.05  # m
+MAX_MOVE = 0.05  # m per step and axis
+MAX_TURN = 0.1  # rad per step
+ROLL_RANGE = 0.8  # rad, either side of the rest orientation
+TILT_RANGE = 0.6  # rad
+# the hand's grasp point stays in this box above the table (world frame, m)
+WORKSPACE_LOW = (0.2, -0.45, 0.825)
+WORKSPACE_HIGH = (0.7, 0.1, 1.075)
+
+TABLE_HEIGHT = 0.8
+CUBE_HALF = 0.025
+CUBE_START_RANGE = 0.1  # ± m around the keyframe's cube position
+SLIDE_GOAL_RANGE = 0.15  # ± m beyond the start region
+LIFT_GOAL_RANGE = 0.1  # ± m around the cube's start
+LIFT_HEIGHT = (0.05, 0.25)  # m above the table top
+
+ARM_JOINTS = ("r_joint1", "r_joint2", "r_joint3", "r_joint4", "r_joint5", "r_joint6")
+CHAIN_JOINTS = ARM_JOINTS + ("r_wrist",)  # every joint that moves the hand frame
+HAND_JOINTS = ("r_fingers", "r_thumb")
+
+
+# ----- rotations (w, x, y, z quaternions as in MuJoCo) ---------------------------------
+def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+    """Hamilton product a ⊗ b."""
+    aw, ax, ay, az = a[0], a[1], a[2], a[3]
+    bw, bx, by, bz = b[0], b[1], b[2], b[3]
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def quat_conj(q: jax.Array) -> jax.Array:
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0])
+
+
+def quat_to_mat(q: jax.Array) -> jax.Array:
+    """Rotation matrix of a unit quaternion."""
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    return jnp.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def axis_quat(axis: int, angle: jax.Array) -> jax.Array:
+    """Quaternion of a rotation by `angle` about coordinate axis `axis` (0, 1 or 2)."""
+    vec = jnp.zeros(3).at[axis].set(jnp.sin(angle / 2))
+    return jnp.concatenate([jnp.cos(angle / 2)[None], vec])
+
+
+def roll_tilt(rest_quat: jax.Array, quat: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(roll, tilt) with quat = rest ⊗ Rx(roll) ⊗ Ry(tilt): angles about the hand's own axes."""
+    rel = quat_to_mat(quat_mul(quat_conj(rest_quat), quat))
+    tilt = jnp.arcsin(jnp.clip(rel[0, 2], -1.0, 1.0))
+    roll = jnp.arctan2(rel[2, 1], rel[1, 1])
+    return roll, tilt
+
+
+def hand_quat(rest_quat: jax.Array, roll: jax.Array, tilt: jax.Array) -> jax.Array:
+    return quat_mul(quat_mul(rest_quat, axis_quat(0, roll)), axis_quat(1, tilt))
+
+
+def euler_xyz(mat: jax.Array) -> jax.Array:
+    """Extrinsic x-y-z Euler angles (roll, pitch, yaw) of mat = Rz(yaw) Ry(pitch) Rx(roll)."""
+    roll = jnp.arctan2(mat[2, 1], mat[2, 2])
+    pitch = jnp.arcsin(jnp.clip(-mat[2, 0], -1.0, 1.0))
+    yaw = jnp.arctan2(mat[1, 0], mat[0, 0])
+    return jnp.stack([roll, pitch, yaw])
+
+
+def point_velocity(point: jax.Array, qvel: jax.Array, axes: jax.Array, anchors: jax.Array) -> jax.Array:
+    """Linear velocity of a point moved by a chain of hinges (axes, anchors: (n, 3); qvel: (n,))."""
+    return jnp.sum(qvel[:, None] * jnp.cross(axes, point - anchors), axis=0)
+
+
+# ----- the environments ----------------------------------------------------------------
+def _ids(mj_model: mujoco.MjModel, kind: mujoco.mjtObj, names: tuple[str, ...]) -> np.ndarray:
+    ids = np.array([mujoco.mj_name2id(mj_model, kind, n) for n in names])
+    if (ids < 0).any():
+        raise ValueError(f"model lacks one of {names}")
+    return ids
+
+
+class NicolEnv(Env):
+    """The shared NICOL scene, action and proprio; subclasses draw the goal."""
+
+    def __init__(self, render: bool = True):
+        mj_model = load_model("nicol.xml")
+        super().__init__(
+            mj_model,
+            episode_length=EPISODE_LENGTH,
+            epsilon=EPSILON,
+            action_size=7,
+            observation_spec=ObservationSpec(proprio_segments=PROPRIO_SEGMENTS, goal_size=3),
+            camera_name="head",
+            render=render,
+        )
+        body, joint = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_JOINT
+        self._hand = int(_ids(mj_model, body, ("r_hand",))[0])
+        self._cube = int(_ids(mj_model, body, ("cube",))[0])
+        self._target_mocap = int(mj_model.body_mocapid[_ids(mj_model, body, ("hand_target",))[0]])
+        self._goal_mocap = int(mj_model.body_mocapid[_ids(mj_model, body, ("goal",))[0]])
+        cube_joint = int(mj_model.body_jntadr[self._cube])
+        self._cube_qpos = int(mj_model.jnt_qposadr[cube_joint])
+        self._cube_dof = int(mj_model.jnt_dofadr[cube_joint])
+        self._chain_joints = _ids(mj_model, joint, CHAIN_JOINTS)
+        self._chain_dofs = mj_model.jnt_dofadr[self._chain_joints]
+        q_joints = _ids(mj_model, joint, ARM_JOINTS + HAND_JOINTS)
+        self._q_adr = mj_model.jnt_qposadr[q_joints]
+        self._qdot_adr = mj_model.jnt_dofadr[q_joints]
+        self._ctrl_low = jnp.asarray(mj_model.actuator_ctrlrange[:, 0], jnp.float32)
+        self._ctrl_high = jnp.asarray(mj_model.actuator_ctrlrange[:, 1], jnp.float32)
+        key = mj_model.key("home")
+        self._home_qpos = jnp.asarray(key.qpos, jnp.float32)
+        self._home_mocap_pos = jnp.asarray(key.mpos.reshape(-1, 3), jnp.float32)
+        self._home_mocap_quat = jnp.asarray(key.mquat.reshape(-1, 4), jnp.float32)
+        self._rest_quat = self._home_mocap_quat[self._target_mocap]
+        self._cube_centre = jnp.asarray(key.qpos[self._cube_qpos : self._cube_qpos + 3], jnp.float32)
+        self._workspace_low = jnp.asarray(WORKSPACE_LOW, jnp.float32)
+        self._workspace_high = jnp.asarray(WORKSPACE_HIGH, jnp.float32)
+
+    # ----- task hook -------------------------------------------------------------------
+    @abc.abstractmethod
+    def _sample_goal(self, key: jax.Array, cube_pos: jax.Array) -> jax.Array:
+        """The desired cube position (3,) for a cube starting at `cube_pos`."""
+
+    # ----- Env hooks -------------------------------------------------------------------
+    def _reset_data(self, key):
+        key_cube, key_goal = jax.random.split(key)
+        offset = jax.random.uniform(key_cube, (2,), minval=-CUBE_START_RANGE, maxval=CUBE_START_RANGE)
+        cube_pos = self._cube_centre.at[:2].add(offset)
+        goal = self._sample_goal(key_goal, cube_pos)
+        qpos = self._home_qpos.at[self._cube_qpos : self._cube_qpos + 3].set(cube_pos)
+        mocap_pos = self._home_mocap_pos.at[self._goal_mocap].set(goal)
+        data = mjx.make_data(self.mjx_model).replace(
+            qpos=qpos, mocap_pos=mocap_pos, mocap_quat=self._home_mocap_quat, ctrl=self._ctrl_low
+        )
+        return data, goal
+
+    def _apply_action(self, data, action):
+        hand = data.xpos[self._hand]
+        target = jnp.clip(hand + MAX_MOVE * action[:3], self._workspace_low, self._workspace_high)
+        roll, tilt = roll_tilt(self._rest_quat, data.mocap_quat[self._target_mocap])
+        roll = jnp.clip(roll + MAX_TURN * action[3], -ROLL_RANGE, ROLL_RANGE)
+        tilt = jnp.clip(tilt + MAX_TURN * action[4], -TILT_RANGE, TILT_RANGE)
+        quat = hand_quat(self._rest_quat, roll, tilt)
+        ctrl = self._ctrl_low + 0.5 * (action[5:7] + 1.0) * (self._ctrl_high - self._ctrl_low)
+        return data.replace(
+            mocap_pos=data.mocap_pos.at[self._target_mocap].set(target),
+            mocap_quat=data.mocap_quat.at[self._target_mocap].set(quat),
+            ctrl=ctrl,
+        )
+
+    def _proprio(self, data):
+        ee_pos = data.xpos[self._hand]
+        obj_pos = data.xpos[self._cube]
+        cube_vel = data.qvel[self._cube_dof : self._cube_dof + 6]
+        ee_velp = point_velocity(
+            ee_pos,
+            data.qvel[self._chain_dofs],
+            data.xaxis[self._chain_joints],
+            data.xanchor[self._chain_joints],
+        )
+        return {
+            "ee_pos": ee_pos,
+            "ee_rot": euler_xyz(data.xmat[self._hand]),
+            "obj_pos": obj_pos,
+            "obj_rot": euler_xyz(data.xmat[self._cube]),
+            "obj_rel_pos": obj_pos - ee_pos,
+            "obj_velp": cube_vel[:3],
+            # a free joint's angular velocity is in the body frame; rotate it to the world
+            "obj_velr": data.xmat[self._cube] @ cube_vel[3:],
+            "ee_velp": ee_velp,
+            "q": data.qpos[self._q_adr],
+            "qdot": data.qvel[self._qdot_adr],
+        }
+
+    def _achieved_goal(self, data):
+        return data.xpos[self._cube]
+
+
+class NicolSlide(NicolEnv):
+    """Slide the cube along the table to a goal on the table."""
+
+    name = "nicol_slide"
+
+    def _sample_goal(self, key, cube_pos):
+        reach = CUBE_START_RANGE + SLIDE_GOAL_RANGE
+        offset = jax.random.uniform(key, (2,), minval=-reach, maxval=reach)
+        return self._cube_centre.at[:2].add(offset)
+
+
+class NicolLift(NicolEnv):
+    """Grasp the cube and lift it to a goal in the air."""
+
+    name = "nicol_lift"
+
+    def _sample_goal(self, key, cube_pos):
+        key_xy, key_z = jax.random.split(key)
+        xy = cube_pos[:2] + jax.random.uniform(key_xy, (2,), minval=-LIFT_GOAL_RANGE, maxval=LIFT_GOAL_RANGE)
+        z = TABLE_HEIGHT + jax.random.uniform(key_z, (), minval=LIFT_HEIGHT[0], maxval=LIFT_HEIGHT[1])
+        return jnp.concatenate([xy, z[None]])
+
+
+def make_reduced_lift(render: bool = True) -> ReducedProprio:
+    """nicol_lift without obj_rot, obj_velp, obj_velr and obj_rel_pos (D = 28), paper Sec. IV-C."""
+    return ReducedProprio(NicolLift(render=render), drop=REDUCED_DROP)

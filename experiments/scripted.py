@@ -1,0 +1,110 @@
+"""Scripted (non-learning) controllers for nicol_slide and nicol_lift.
+
+They show that the NICOL model's physics allows grasping and moving the cube within the
+50-step episode (TASKS.md). One controller serves both tasks: `grasp_policy` hovers
+above the cube, descends, closes fingers and thumb on it and carries it to the goal; on
+nicol_slide the goal lies on the table, so the held cube slides along the table top. It
+is a pure, stateless JAX function of one observation (its named proprio segments and the
+desired goal), so it vmaps over environments; the phase of the manoeuvre is read from
+the observation itself. (A thumb-pushing controller reached only about 45 % on
+nicol_slide: a fast push launches the cube; see assets/README.md.)
+
+    python -m experiments.scripted      # success rates over 100 random episodes each
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+
+from envs_mjx.base import Env, ObservationSpec
+from envs_mjx.nicol import MAX_MOVE, NicolLift, NicolSlide
+
+FINGERS_ENGAGED = 0.3  # rad of finger closure: a grasp is under way
+FINGERS_CLOSED = 1.5  # rad of finger closure that means the cube is held
+HOVER = 0.06  # m above the cube before descending
+ALIGNED = 0.005  # m
+HELD = 0.04  # m between grasp point and cube while the fingers hold it
+CARRY_STEP = 0.01  # m per step while carrying the cube, gentle enough for the grip
+
+
+def _segment(obs: dict[str, jax.Array], spec: ObservationSpec, name: str) -> jax.Array:
+    return obs["proprio"][spec.segment_slice(name)]
+
+
+def _clip_norm(vec: jax.Array, max_norm: jax.Array | float) -> jax.Array:
+    return vec * jnp.minimum(1.0, max_norm / jnp.maximum(jnp.linalg.norm(vec), 1e-9))
+
+
+def _move(ee: jax.Array, target: jax.Array, max_step: jax.Array | float = MAX_MOVE) -> jax.Array:
+    """Position part of the action that moves the grasp point toward `target` by at most
+    `max_step` per axis and in norm (m)."""
+    return jnp.clip(_clip_norm(target - ee, max_step) / MAX_MOVE, -1.0, 1.0)
+
+
+def _action(move: jax.Array, fingers: jax.Array, thumb: jax.Array) -> jax.Array:
+    """Full action: move (3,), no roll or tilt, finger closure and thumb abduction."""
+    return jnp.concatenate([move, jnp.zeros(2), jnp.stack([fingers, thumb])])
+
+
+def grasp_policy(obs: dict[str, jax.Array], spec: ObservationSpec) -> jax.Array:
+    """Grasp the cube between fingers and thumb and carry it to the goal: on the table
+    (nicol_slide: the held cube slides along the table top) or in the air (nicol_lift).
+
+    Hover above the cube with the thumb along the palm, oppose the thumb once aligned,
+    descend until the grasp point is at the cube's centre, close the fingers and, once
+    they hold the cube, move the hand so that the cube reaches the goal.
+    """
+    ee = _segment(obs, spec, "ee_pos")
+    obj = _segment(obs, spec, "obj_pos")
+    closure = _segment(obs, spec, "q")[6]
+    rel = obj - ee
+    near = jnp.linalg.norm(rel) < HELD
+    aligned = jnp.linalg.norm(rel[:2]) < ALIGNED
+    lowered = aligned & (jnp.abs(rel[2]) < ALIGNED)
+    # once the fingers are closing on a nearby cube, keep closing without re-aligning
+    grasping = lowered | (near & (closure > FINGERS_ENGAGED))
+    held = near & (closure > FINGERS_CLOSED)
+    hover = obj + jnp.array([0.0, 0.0, HOVER])
+    target = jnp.where(aligned, obj, hover)
+    target = jnp.where(grasping, ee, target)
+    target = jnp.where(held, ee + obs["desired_goal"] - obj, target)
+    move = _move(ee, target, jnp.where(held, CARRY_STEP, MAX_MOVE))
+    fingers = jnp.where(grasping, 1.0, -1.0)
+    thumb = jnp.where(aligned | grasping, 1.0, -1.0)
+    return _action(move, fingers, thumb)
+
+
+def evaluate(env: Env, policy, key: jax.Array, n_episodes: int) -> jax.Array:
+    """Success (at the last step, as in the env) of `policy` over vmapped episodes."""
+
+    def episode(key):
+        state = env.reset(key)
+
+        def body(state, _):
+            return env.step(state, policy(state.obs, env.observation_spec)), None
+
+        state, _ = jax.lax.scan(body, state, None, length=env.episode_length)
+        return state.metrics["success"]
+
+    return jax.vmap(episode)(jax.random.split(key, n_episodes))
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--episodes", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    key_slide, key_lift = jax.random.split(jax.random.PRNGKey(args.seed))
+    for name, env, key in (
+        ("nicol_slide", NicolSlide(render=False), key_slide),
+        ("nicol_lift", NicolLift(render=False), key_lift),
+    ):
+        success = jax.jit(evaluate, static_argnums=(0, 1, 3))(env, grasp_policy, key, args.episodes)
+        print(f"{name}: scripted success {float(success.mean()):.2f} over {args.episodes} episodes")
+
+
+if __name__ == "__main__":
+    main()

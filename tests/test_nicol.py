@@ -1,0 +1,122 @@
+"""nicol_slide / nicol_lift tests (TASKS.md "nicol_slide and nicol_lift"): proprio layout,
+reduced variant, reset distributions, Cartesian hand tracking, joint limits and the
+scripted controllers that prove both tasks solvable in this physics.
+
+The shared API tests (shapes, NaN, determinism, MJX vs mj_step) live in test_env_contract.py.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import envs_mjx
+from envs_mjx import nicol
+from envs_mjx.nicol import NicolLift, NicolSlide
+from experiments.scripted import evaluate, grasp_policy
+
+TASKS_SEGMENTS = (
+    ("ee_pos", 3), ("ee_rot", 3), ("obj_pos", 3), ("obj_rot", 3), ("obj_rel_pos", 3),
+    ("obj_velp", 3), ("obj_velr", 3), ("ee_velp", 3), ("q", 8), ("qdot", 8),
+)
+REDUCED_NAMES = ("ee_pos", "ee_rot", "obj_pos", "ee_velp", "q", "qdot")
+N_RESETS = 512
+N_EPISODES = 100
+
+
+@pytest.fixture(scope="module")
+def lift():
+    return NicolLift(render=False)
+
+
+@pytest.fixture(scope="module")
+def slide():
+    return NicolSlide(render=False)
+
+
+@pytest.fixture(scope="module")
+def lift_resets(lift):
+    return jax.jit(jax.vmap(lift.reset))(jax.random.split(jax.random.PRNGKey(0), N_RESETS))
+
+
+def test_proprio_has_the_forty_named_features_of_tasks_md(lift, slide):
+    for env in (lift, slide):
+        assert env.observation_spec.proprio_segments == TASKS_SEGMENTS
+        assert env.observation_spec.proprio_size == 40
+        assert env.action_size == 7 and env.observation_spec.goal_size == 3
+        assert env.episode_length == 50 and env.epsilon == 0.05
+
+
+def test_reduced_lift_keeps_exactly_the_28_named_features(lift, lift_resets):
+    reduced = envs_mjx.make("nicol_lift_reduced", render=False)
+    assert reduced.observation_spec.segment_names == REDUCED_NAMES
+    assert reduced.observation_spec.proprio_size == 28
+    key = jax.random.PRNGKey(0)
+    full = jax.tree.map(lambda x: x[0], lift_resets)
+    small = jax.jit(reduced.reset)(jax.random.split(key, N_RESETS)[0])
+    spec = lift.observation_spec
+    expected = np.concatenate([np.asarray(full.obs["proprio"][spec.segment_slice(n)]) for n in REDUCED_NAMES])
+    np.testing.assert_array_equal(np.asarray(small.obs["proprio"]), expected)
+    np.testing.assert_array_equal(np.asarray(small.obs["desired_goal"]), np.asarray(full.obs["desired_goal"]))
+
+
+def test_reduced_proprio_rejects_unknown_segment_names(lift):
+    with pytest.raises(ValueError, match="obj_colour"):
+        envs_mjx.wrappers.ReducedProprio(lift, drop=("obj_colour",))
+
+
+def test_cube_starts_and_lift_goals_follow_the_contract(lift, lift_resets):
+    spec = lift.observation_spec
+    cube = np.asarray(lift_resets.obs["proprio"][:, spec.segment_slice("obj_pos")])
+    centre = np.asarray(lift._cube_centre)
+    assert np.abs(cube[:, :2] - centre[:2]).max() <= nicol.CUBE_START_RANGE + 1e-3
+    np.testing.assert_allclose(cube[:, 2], nicol.TABLE_HEIGHT + nicol.CUBE_HALF, atol=2e-3)
+    goal = np.asarray(lift_resets.obs["desired_goal"])
+    assert np.abs(goal[:, :2] - cube[:, :2]).max() <= nicol.LIFT_GOAL_RANGE + 1e-3
+    height = goal[:, 2] - nicol.TABLE_HEIGHT
+    assert height.min() >= nicol.LIFT_HEIGHT[0] - 1e-6 and height.max() <= nicol.LIFT_HEIGHT[1] + 1e-6
+    # the goal marker sits at the goal
+    np.testing.assert_allclose(np.asarray(lift_resets.data.mocap_pos[:, lift._goal_mocap]), goal, atol=1e-6)
+
+
+def test_slide_goals_lie_on_the_table_around_the_start_region(slide):
+    states = jax.jit(jax.vmap(slide.reset))(jax.random.split(jax.random.PRNGKey(1), N_RESETS))
+    goal = np.asarray(states.obs["desired_goal"])
+    centre = np.asarray(slide._cube_centre)
+    reach = nicol.CUBE_START_RANGE + nicol.SLIDE_GOAL_RANGE
+    assert np.abs(goal[:, :2] - centre[:2]).max() <= reach + 1e-6
+    assert np.abs(goal[:, :2] - centre[:2]).max() > 0.8 * reach  # the whole range is used
+    np.testing.assert_allclose(goal[:, 2], centre[2], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(states.data.mocap_pos[:, slide._goal_mocap]), goal, atol=1e-6)
+
+
+def test_hand_tracks_random_cartesian_commands_within_a_centimetre(lift):
+    """After every control period the hand is within 1 cm of its commanded position, and the
+    arm joints stay inside their limits."""
+
+    def run(key):
+        k0, k1 = jax.random.split(key)
+
+        def body(state, k):
+            state = lift.step(state, jax.random.uniform(k, (7,), minval=-1.0, maxval=1.0))
+            target = state.data.mocap_pos[lift._target_mocap]
+            error = jnp.linalg.norm(state.data.xpos[lift._hand] - target)
+            return state, (error, state.data.qpos[lift._q_adr[:6]])
+
+        return jax.lax.scan(body, lift.reset(k0), jax.random.split(k1, 50))[1]
+
+    error, q = jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(2), 16))
+    error, q = np.asarray(error), np.asarray(q)
+    print(f"hand tracking error after one period: mean {1000 * error.mean():.1f} mm, max {1000 * error.max():.1f} mm")
+    assert error.max() < 0.01
+    low, high = lift.mj_model.jnt_range[lift._chain_joints[:6]].T
+    assert (q >= low - 1e-3).all() and (q <= high + 1e-3).all()
+
+
+@pytest.mark.parametrize("task,threshold", [("slide", 0.9), ("lift", 0.8)])
+def test_scripted_grasp_controller_solves_the_task(task, threshold, slide, lift):
+    env = {"slide": slide, "lift": lift}[task]
+    success = jax.jit(evaluate, static_argnums=(0, 1, 3))(env, grasp_policy, jax.random.PRNGKey(7), N_EPISODES)
+    rate = float(np.asarray(success).mean())
+    print(f"nicol_{task}: scripted success {rate:.2f} over {N_EPISODES} episodes")
+    assert rate >= threshold
