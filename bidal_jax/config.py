@@ -107,7 +107,14 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     **{
         name: {
             "run": {"epochs": 100},
-            "train": {"num_envs": 128, "batch_size": 1024, "buffer_episodes": 8192, "eval_envs": 128},
+            "train": {
+                "num_envs": 512,
+                "cycles_per_epoch": 5,
+                "updates_per_cycle": 80,
+                "batch_size": 2048,
+                "buffer_episodes": 16384,
+                "eval_envs": 128,
+            },
         }
         for name in ("nicol_slide", "nicol_lift", "nicol_lift_reduced")
     },

@@ -12,6 +12,8 @@ import importlib.metadata
 import os
 from typing import Any
 
+from envs_mjx.base import Env, ObservationSpec, State
+
 # XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
 # before the first computation. With its default fusion emitters XLA:CPU compiles MJX
 # steps in time that grows exponentially with the depth of the kinematic tree (the

@@ -13,6 +13,7 @@ import pytest
 import envs_mjx
 from envs_mjx import nicol
 from envs_mjx.nicol import NicolLift, NicolSlide
+from envs_mjx.wrappers import ReducedProprio
 from experiments.scripted import evaluate, grasp_policy
 
 TASKS_SEGMENTS = (
@@ -62,7 +63,7 @@ def test_reduced_lift_keeps_exactly_the_28_named_features(lift, lift_resets):
 
 def test_reduced_proprio_rejects_unknown_segment_names(lift):
     with pytest.raises(ValueError, match="obj_colour"):
-        envs_mjx.wrappers.ReducedProprio(lift, drop=("obj_colour",))
+        ReducedProprio(lift, drop=("obj_colour",))
 
 
 def test_cube_starts_and_lift_goals_follow_the_contract(lift, lift_resets):
