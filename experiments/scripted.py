@@ -1,12 +1,12 @@
-"""Scripted (non-learning) controllers for nicol_slide and nicol_lift.
+"""A scripted (non-learning) controller for nicol_slide and nicol_lift.
 
-They show that the NICOL model's physics allows grasping and moving the cube within the
+It shows that the NICOL model's physics allows grasping and moving the cube within the
 50-step episode (TASKS.md). One controller serves both tasks: `grasp_policy` hovers
 above the cube, descends, closes fingers and thumb on it and carries it to the goal; on
 nicol_slide the goal lies on the table, so the held cube slides along the table top. It
 is a pure, stateless JAX function of one observation (its named proprio segments and the
 desired goal), so it vmaps over environments; the phase of the manoeuvre is read from
-the observation itself. (A thumb-pushing controller reached only about 45 % on
+the observation itself. (A thumb-pushing controller reached only 40–47 % on
 nicol_slide: a fast push launches the cube; see assets/README.md.)
 
     python -m experiments.scripted      # success rates over 100 random episodes each
@@ -97,6 +97,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--episodes", type=int, default=100)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be a positive integer, got {args.episodes}")
     key_slide, key_lift = jax.random.split(jax.random.PRNGKey(args.seed))
     for name, env, key in (
         ("nicol_slide", NicolSlide(render=False), key_slide),
