@@ -70,6 +70,11 @@ class TrainConfig:
     action_l2: float = doc(1.0, "weight of the actor's action L2 penalty")
     noise_eps: float = doc(0.2, "std of the Gaussian exploration noise on actions")
     random_eps: float = doc(0.3, "probability of a uniformly random exploration action")
+    exploration_starts: float = doc(
+        0.0,
+        "fraction of training episodes begun by the env's exploration_reset (nicol_lift: the cube "
+        "already held, as HER's pick-and-place); evaluation always begins from reset",
+    )
     her_k: int = doc(4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)")
     intrinsic_lambda: float = doc(0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)")
     forward_weight: float = doc(1.0, "weight of the forward-model loss (Eq. 3) in the representation loss")
@@ -114,6 +119,8 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
                 "batch_size": 2048,
                 "buffer_episodes": 16384,
                 "eval_envs": 128,
+                # lifting: half the training episodes begin with the cube held (README, "Results")
+                "exploration_starts": 0.5 if "lift" in name else 0.0,
             },
         }
         for name in ("nicol_slide", "nicol_lift", "nicol_lift_reduced")

@@ -18,6 +18,7 @@ from flax import struct
 from bidal_jax import normalizer, replay
 from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
 from bidal_jax.losses import make_losses
+from bidal_jax.validate import ConfigError
 from bidal_jax.networks import make_networks
 
 
@@ -48,6 +49,10 @@ def polyak(target: Any, online: Any, tau: float) -> Any:
 
 def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainConfig):
     """Build `init(key) -> TrainState` and `epoch(TrainState) -> (TrainState, metrics)`."""
+    if config.exploration_starts > 0 and not env.has_exploration_start:
+        raise ConfigError(
+            f"--exploration-starts {config.exploration_starts}: env {env.name} has no exploration start; must be 0"
+        )
     spec = env.observation_spec
     horizon = env.episode_length
     networks = make_networks(agent, net_config, spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)
@@ -71,10 +76,21 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
         phi = networks.encode(ts.params.get("encoder"), image, normalize_proprio(ts, obs["proprio"]))
         return networks.actor(ts.params["actor"], phi, normalize_goal(ts, obs["desired_goal"]))
 
+    def start_states(key, n_envs: int, explore: bool):
+        """n_envs initial states: from `env.reset`, but in training a fraction
+        `exploration_starts` from `env.exploration_reset` (e.g. the cube already held)."""
+        if not (explore and config.exploration_starts > 0):
+            return jax.vmap(env.reset)(jax.random.split(key, n_envs))
+        key_reset, key_eased, key_pick = jax.random.split(key, 3)
+        state = jax.vmap(env.reset)(jax.random.split(key_reset, n_envs))
+        eased = jax.vmap(env.exploration_reset)(jax.random.split(key_eased, n_envs))
+        pick = jax.random.uniform(key_pick, (n_envs,)) < config.exploration_starts
+        return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
+
     def rollout(ts, key, n_envs: int, explore: bool):
         """n_envs full episodes; returns (episodes, success at the last step)."""
         key_reset, key_steps = jax.random.split(key)
-        state = jax.vmap(env.reset)(jax.random.split(key_reset, n_envs))
+        state = start_states(key_reset, n_envs, explore)
 
         def step(state, key):
             obs = state.obs

@@ -75,6 +75,7 @@ RULES: dict[str, Rule] = {
     "action_l2": _NON_NEG,
     "noise_eps": _NON_NEG,
     "random_eps": _PROB,
+    "exploration_starts": _PROB,
     "her_k": (int, _non_negative, "an integer >= 0"),
     "intrinsic_lambda": _NON_NEG,
     "forward_weight": _NON_NEG,

@@ -115,6 +115,8 @@ class Env(abc.ABC):
     """
 
     name: str = "env"
+    # whether `exploration_reset` differs from `reset` (see there)
+    has_exploration_start: bool = False
 
     def __init__(
         self,
@@ -145,6 +147,10 @@ class Env(abc.ABC):
     def _reset_data(self, key: jax.Array) -> tuple[mjx.Data, jax.Array]:
         """Return the initial (data, desired_goal); data need not be forwarded."""
 
+    def _exploration_reset_data(self, key: jax.Array) -> tuple[mjx.Data, jax.Array]:
+        """Like `_reset_data`, for `exploration_reset`; envs that set `has_exploration_start` override it."""
+        return self._reset_data(key)
+
     @abc.abstractmethod
     def _apply_action(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
         """Write a clipped action in [-1, 1] into the controls (ctrl / mocap)."""
@@ -163,7 +169,20 @@ class Env(abc.ABC):
         return sparse_reward(achieved_goal, desired_goal, self.epsilon)
 
     def reset(self, key: jax.Array) -> State:
-        data, goal = self._reset_data(key)
+        """The task's initial state and goal (TASKS.md); evaluation always starts here."""
+        return self._start(*self._reset_data(key))
+
+    def exploration_reset(self, key: jax.Array) -> State:
+        """An initial state that eases exploration, for some training episodes only.
+
+        The goal is drawn as in `reset`; only the start differs, e.g. nicol_lift starts
+        with the cube already held, as the HER paper (Andrychowicz et al. 2017) started
+        half of its pick-and-place training episodes from a recorded grasp. Envs without
+        such a start (`has_exploration_start` False) return a `reset` state.
+        """
+        return self._start(*self._exploration_reset_data(key))
+
+    def _start(self, data: mjx.Data, goal: jax.Array) -> State:
         data = mjx.forward(self.mjx_model, data)
         obs = self._observe(data, goal)
         zero = jnp.zeros((), jnp.float32)

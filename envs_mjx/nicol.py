@@ -31,6 +31,8 @@ front of the hand's rest position.
 - nicol_slide: goal on the table within ±`SLIDE_GOAL_RANGE` of the cube's start region.
 - nicol_lift: goal `LIFT_HEIGHT` above the table top within ±`LIFT_GOAL_RANGE` (xy) of
   the cube's start.
+  Its `exploration_reset` starts with the cube already held in the resting hand (the
+  HER paper's pick-and-place aid; the trainer's `exploration_starts` sets how often).
 - nicol_lift_reduced (`make_reduced_lift`): lift without obj_rot, obj_velp, obj_velr and
   obj_rel_pos (D = 28), for the transfer experiment (paper Sec. IV-C).
 """
@@ -38,6 +40,7 @@ front of the hand's rest position.
 from __future__ import annotations
 
 import abc
+import copy
 
 import jax
 import jax.numpy as jnp
@@ -78,6 +81,8 @@ CUBE_START_RANGE = 0.1  # ± m around the keyframe's cube position
 SLIDE_GOAL_RANGE = 0.15  # ± m beyond the start region
 LIFT_GOAL_RANGE = 0.1  # ± m around the cube's start
 LIFT_HEIGHT = (0.05, 0.25)  # m above the table top
+GRASP_CLOSE_TIME = 0.6  # s for fingers and thumb to close on the cube, without gravity
+GRASP_SETTLE_TIME = 0.4  # s for the held cube to settle under gravity
 
 ARM_JOINTS = ("r_joint1", "r_joint2", "r_joint3", "r_joint4", "r_joint5", "r_joint6")
 CHAIN_JOINTS = ARM_JOINTS + ("r_wrist",)  # every joint that moves the hand frame
@@ -147,6 +152,29 @@ def point_velocity(point: jax.Array, qvel: jax.Array, axes: jax.Array, anchors: 
 
 
 # ----- the environments ----------------------------------------------------------------
+def held_cube_start(mj_model: mujoco.MjModel) -> tuple[np.ndarray, np.ndarray]:
+    """(qpos, ctrl) of the home pose with the cube held between fingers and thumb.
+
+    Native MuJoCo, once at construction: the cube is put at the resting hand's grasp
+    point, fingers and thumb close on it without gravity (`GRASP_CLOSE_TIME`), then it
+    settles in the grip under gravity (`GRASP_SETTLE_TIME`).
+    """
+    model = copy.copy(mj_model)  # a deep copy: gravity is switched off below
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, model.key("home").id)
+    mujoco.mj_kinematics(model, data)
+    cube = model.body("cube")
+    adr = int(model.jnt_qposadr[cube.jntadr[0]])
+    data.qpos[adr : adr + 3] = data.xpos[model.body("r_hand").id]
+    data.ctrl[:] = model.actuator_ctrlrange[:, 1]
+    gravity = model.opt.gravity.copy()
+    model.opt.gravity[:] = 0.0
+    mujoco.mj_step(model, data, nstep=int(round(GRASP_CLOSE_TIME / model.opt.timestep)))
+    model.opt.gravity[:] = gravity
+    mujoco.mj_step(model, data, nstep=int(round(GRASP_SETTLE_TIME / model.opt.timestep)))
+    return data.qpos.astype(np.float32), data.ctrl.astype(np.float32)
+
+
 def _ids(mj_model: mujoco.MjModel, kind: mujoco.mjtObj, names: tuple[str, ...]) -> np.ndarray:
     ids = np.array([mujoco.mj_name2id(mj_model, kind, n) for n in names])
     if (ids < 0).any():
@@ -267,6 +295,17 @@ class NicolLift(NicolEnv):
     """Grasp the cube and lift it to a goal in the air."""
 
     name = "nicol_lift"
+    has_exploration_start = True
+
+    def __init__(self, render: bool = True):
+        super().__init__(render=render)
+        held_qpos, held_ctrl = held_cube_start(self.mj_model)
+        self._held_qpos, self._held_ctrl = jnp.asarray(held_qpos), jnp.asarray(held_ctrl)
+
+    def _exploration_reset_data(self, key):
+        # the goal as in `reset` (drawn for a cube on the table); the cube starts in the hand
+        data, goal = self._reset_data(key)
+        return data.replace(qpos=self._held_qpos, ctrl=self._held_ctrl), goal
 
     def _sample_goal(self, key, cube_pos):
         key_xy, key_z = jax.random.split(key)

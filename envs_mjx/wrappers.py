@@ -46,6 +46,9 @@ class ReducedProprio:
     def reset(self, key: jax.Array) -> State:
         return self._reduce(self.env.reset(key))
 
+    def exploration_reset(self, key: jax.Array) -> State:
+        return self._reduce(self.env.exploration_reset(key))
+
     def step(self, state: State, action: jax.Array) -> State:
         # the wrapped step recomputes the full observation from state.data
         return self._reduce(self.env.step(state, action))

@@ -7,6 +7,7 @@ The shared API tests (shapes, NaN, determinism, MJX vs mj_step) live in test_env
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 import pytest
 
@@ -112,6 +113,33 @@ def test_hand_tracks_random_cartesian_commands_within_a_centimetre(lift):
     assert error.max() < 0.01
     low, high = lift.mj_model.jnt_range[lift._chain_joints[:6]].T
     assert (q >= low - 1e-3).all() and (q <= high + 1e-3).all()
+
+
+def test_held_cube_start_keeps_the_cube_in_the_rising_hand(lift):
+    """Native MuJoCo from the exploration start: with the grip closed, the cube follows the
+    hand target 0.1 m up and stays within a few mm of the grasp point."""
+    model = lift.mj_model
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, model.key("home").id)
+    data.qpos[:], data.ctrl[:] = nicol.held_cube_start(model)
+    mujoco.mj_forward(model, data)
+    start = data.xpos[lift._cube].copy()
+    for _ in range(25):  # one second: 4 mm per control period
+        data.mocap_pos[lift._target_mocap, 2] += 0.004
+        mujoco.mj_step(model, data, nstep=lift.n_substeps)
+    assert data.xpos[lift._cube][2] - start[2] > 0.09
+    assert np.linalg.norm(data.xpos[lift._cube] - data.xpos[lift._hand]) < 0.01
+
+
+def test_exploration_reset_holds_the_cube_and_draws_the_reset_goal(lift, lift_resets):
+    keys = jax.random.split(jax.random.PRNGKey(0), N_RESETS)[:8]
+    eased = jax.jit(jax.vmap(lift.exploration_reset))(keys)
+    spec = lift.observation_spec
+    rel = np.asarray(eased.obs["proprio"][:, spec.segment_slice("obj_rel_pos")])
+    closure = np.asarray(eased.obs["proprio"][:, spec.segment_slice("q")][:, 6])
+    assert (np.linalg.norm(rel, axis=1) < 0.01).all() and (closure > 1.0).all()
+    np.testing.assert_array_equal(np.asarray(eased.obs["desired_goal"]), np.asarray(lift_resets.obs["desired_goal"][:8]))
+    assert lift.has_exploration_start and not NicolSlide.has_exploration_start
 
 
 @pytest.mark.parametrize("task,threshold", [("slide", 0.9), ("lift", 0.8)])

@@ -10,6 +10,8 @@ import pytest
 import envs_mjx
 from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
 from bidal_jax.train import make_seeded, make_train
+from bidal_jax.validate import ConfigError
+from envs_mjx.planar_reach import PlanarReach
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 
@@ -36,6 +38,33 @@ def test_epoch_compiles_once_and_runs_for_several_seeds(agent):
     # seeds differ
     leaves = jax.tree.leaves(state.params["actor"])
     assert not np.array_equal(np.asarray(leaves[0][0]), np.asarray(leaves[0][1]))
+
+
+class FoldedPlanarReach(PlanarReach):
+    """planar_reach whose exploration start is the folded arm q = (0, 2): easy to recognise."""
+
+    has_exploration_start = True
+
+    def _exploration_reset_data(self, key):
+        data, goal = self._reset_data(key)
+        q0 = np.array([0.0, 2.0], np.float32)
+        return data.replace(qpos=q0, ctrl=q0), goal
+
+
+def test_exploration_starts_begin_training_episodes_only_from_exploration_reset():
+    env = FoldedPlanarReach(render=False)
+    config = dataclasses.replace(TINY, exploration_starts=1.0, cycles_per_epoch=1)
+    init, epoch = make_seeded(*make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), config))
+    state, _ = epoch(init(jax.random.split(jax.random.PRNGKey(0), 1)))
+    first = np.asarray(state.buffer.episodes["proprio"][0, : config.num_envs, 0])  # step 0 of each episode
+    folded = np.asarray(jax.jit(env.exploration_reset)(jax.random.PRNGKey(1)).obs["proprio"])
+    np.testing.assert_allclose(first, np.broadcast_to(folded, first.shape), atol=1e-6)
+
+
+def test_exploration_starts_need_an_env_that_has_them():
+    env = envs_mjx.make("planar_reach", render=False)
+    with pytest.raises(ConfigError, match="--exploration-starts 0.5: env planar_reach has no exploration start"):
+        make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), dataclasses.replace(TINY, exploration_starts=0.5))
 
 
 @pytest.mark.slow
