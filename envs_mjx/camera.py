@@ -1,13 +1,23 @@
 """A pure-JAX ray-cast camera shared by every environment (TASKS.md, "camera").
 
-The paper's visual input s^v_t is a 42×42 grayscale frame of the scene (Table I). Here
-each pixel is one `mujoco.mjx.ray` from the camera centre, vmapped over pixels, so the
-image is rendered inside jit on CPU and GPU alike. A pixel's value is the gray level of
-the first geom its ray hits (the luminance of the geom's colour), or the background.
+The paper's visual input s^v_t is a 42×42 grayscale frame of the scene (Table I). Each
+pixel is one ray from the camera centre; its value is the gray level of the first geom the
+ray hits (the luminance of the geom's colour), or the background. The image is rendered
+inside jit on CPU and GPU alike and is what `mujoco.mjx.ray` cast per pixel sees (the same
+intersection functions and geoms; tests/test_camera.py compares them), organised for speed
+(PERFORMANCE.md: the camera bounds the image agents):
 
-Rays are precomputed once at construction in the world frame, so the camera must be
-fixed: its body and every ancestor have no joints and are not mocap bodies. Only geoms
-of groups 0–2 (MuJoCo's visible groups) are seen; put collision-only geoms in group 3+.
+- rays are precomputed once at construction in the world frame, so the camera must be
+  fixed: its body and every ancestor have no joints and are not mocap bodies;
+- geoms fixed to the world (table, floor, static links) are cast once at construction into
+  a static depth and gray image;
+- each moving geom is then cast against all rays and merged into a running nearest hit,
+  one geom after another, in element-wise arithmetic that XLA fuses (no per-geom matrix
+  products, no [rays × geoms] arrays and arg-min as in `mjx.ray`).
+
+Only geoms of groups 0–2 (MuJoCo's visible groups) with nonzero alpha are seen, as with
+`mjx.ray(geomgroup=VISIBLE_GROUPS)`; put collision-only geoms in group 3+. Like `mjx.ray`,
+it cannot draw cylinders, height fields or meshes; a visible one is refused.
 """
 
 from __future__ import annotations
@@ -17,9 +27,15 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
+from mujoco.mjx._src import ray as mjx_ray  # mjx.ray's per-type intersection functions
 
 VISIBLE_GROUPS = (1, 1, 1, 0, 0, 0)
 LUMA = np.array([0.299, 0.587, 0.114])
+# the geom types mjx.ray draws, in its order (its arg-min keeps the first of equal distances)
+RAY_TYPES = tuple(int(t) for t in (mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_SPHERE,
+                                   mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_ELLIPSOID,
+                                   mujoco.mjtGeom.mjGEOM_BOX))
+_RAY_FN = {t: mjx_ray._RAY_FUNC[mjx.GeomType(t)] for t in RAY_TYPES}
 
 
 def _assert_static(mj_model: mujoco.MjModel, cam_id: int, name: str) -> None:
@@ -36,6 +52,35 @@ def geom_gray_levels(mj_model: mujoco.MjModel) -> np.ndarray:
     has_mat = mj_model.geom_matid >= 0
     rgba[has_mat] = mj_model.mat_rgba[mj_model.geom_matid[has_mat]]
     return np.clip(np.round(255.0 * rgba[:, :3] @ LUMA), 0, 255).astype(np.uint8)
+
+
+def visible_geoms(mj_model: mujoco.MjModel) -> list[int]:
+    """Ids of the geoms the camera sees, in `mjx.ray`'s order: by type, then by id."""
+    group_ok = np.array(VISIBLE_GROUPS, bool)[np.clip(mj_model.geom_group, 0, len(VISIBLE_GROUPS) - 1)]
+    mat = mj_model.geom_matid
+    alpha = np.where(mat >= 0, mj_model.mat_rgba[np.maximum(mat, 0), 3], mj_model.geom_rgba[:, 3])
+    seen = [int(g) for g in np.nonzero(group_ok & (alpha != 0))[0]]
+    for g in seen:
+        if int(mj_model.geom_type[g]) not in RAY_TYPES:
+            kind = mujoco.mjtGeom(int(mj_model.geom_type[g])).name
+            raise ValueError(f"geom {g} is a visible {kind}; the camera draws planes, spheres, capsules, "
+                             "ellipsoids and boxes (put it in group 3 or higher to hide it)")
+    return sorted(seen, key=lambda g: (RAY_TYPES.index(int(mj_model.geom_type[g])), g))
+
+
+def cast(directions: jax.Array, origin: jax.Array, geom_type: int, size: jax.Array, xpos: jax.Array,
+         xmat: jax.Array) -> jax.Array:
+    """Distance along each unit ray (P, 3) from `origin` to one geom (inf where missed)."""
+    pnt = jnp.sum(xmat * (origin - xpos)[:, None], axis=0)  # xmat.T @ (origin - xpos)
+    # each ray in the geom frame, xmat.T @ direction, written element-wise so that it fuses
+    vecs = directions[:, 0:1] * xmat[0] + directions[:, 1:2] * xmat[1] + directions[:, 2:3] * xmat[2]
+    return jax.vmap(_RAY_FN[geom_type], in_axes=(None, None, 0))(size, pnt, vecs)
+
+
+def nearest(dist: jax.Array, gray: jax.Array, hit: jax.Array, level) -> tuple[jax.Array, jax.Array]:
+    """Merge one geom's distances `hit` (gray `level`) into the running nearest (dist, gray)."""
+    closer = hit < dist
+    return jnp.where(closer, hit, dist), jnp.where(closer, jnp.asarray(level, gray.dtype), gray)
 
 
 class Camera:
@@ -67,17 +112,26 @@ class Camera:
         local /= np.linalg.norm(local, axis=-1, keepdims=True)
         self.directions = (local @ self.rotation.T).astype(np.float32)
         self.gray_levels = np.append(geom_gray_levels(mj_model), np.uint8(background))
+        geoms = visible_geoms(mj_model)
+        fixed = [g for g in geoms if mj_model.body_weldid[mj_model.geom_bodyid[g]] == 0]
+        self.moving_geoms = tuple((g, int(mj_model.geom_type[g])) for g in geoms if g not in fixed)
+        # the geoms fixed to the world, cast once: the background the moving geoms cover
+        dist = jnp.full(len(local), jnp.inf, jnp.float32)
+        gray = jnp.full(len(local), background, jnp.uint8)
+        for g in fixed:
+            hit = cast(jnp.asarray(self.directions), jnp.asarray(self.position), int(mj_model.geom_type[g]),
+                       jnp.asarray(mj_model.geom_size[g], jnp.float32), jnp.asarray(data.geom_xpos[g], jnp.float32),
+                       jnp.asarray(data.geom_xmat[g].reshape(3, 3), jnp.float32))
+            dist, gray = nearest(dist, gray, hit, self.gray_levels[g])
+        self.static_dist, self.static_gray = np.asarray(dist), np.asarray(gray)
 
     def render(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
         """Render the scene of `data` (positions must be current) as uint8 [H, W, 1]."""
-        pnt = jnp.asarray(self.position)
-
-        def cast(vec):
-            return mjx.ray(mjx_model, data, pnt, vec, geomgroup=VISIBLE_GROUPS)[1]
-
-        geom_ids = jax.vmap(cast)(jnp.asarray(self.directions))
-        # id -1 (no hit) indexes the appended background level
-        gray = jnp.asarray(self.gray_levels)[geom_ids]
+        dirs, origin = jnp.asarray(self.directions), jnp.asarray(self.position)
+        dist, gray = jnp.asarray(self.static_dist), jnp.asarray(self.static_gray)
+        for g, geom_type in self.moving_geoms:
+            hit = cast(dirs, origin, geom_type, mjx_model.geom_size[g], data.geom_xpos[g], data.geom_xmat[g])
+            dist, gray = nearest(dist, gray, hit, self.gray_levels[g])
         return gray.reshape(self.resolution, self.resolution, 1)
 
     def project(self, point: np.ndarray) -> tuple[float, float]:

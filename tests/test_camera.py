@@ -1,4 +1,4 @@
-"""The shared ray-cast camera on planar_reach (envs_mjx/camera.py)."""
+"""The shared ray-cast camera (envs_mjx/camera.py): planar_reach poses, and equality with mjx.ray."""
 
 import jax
 import jax.numpy as jnp
@@ -8,7 +8,7 @@ import pytest
 from mujoco import mjx
 
 import envs_mjx
-from envs_mjx.camera import Camera, geom_gray_levels
+from envs_mjx.camera import VISIBLE_GROUPS, Camera, geom_gray_levels
 from envs_mjx.planar_reach import TARGET_HEIGHT, forward_kinematics
 
 
@@ -60,3 +60,37 @@ def test_only_fixed_cameras_are_accepted():
         Camera(model, "c", 8)
     with pytest.raises(ValueError, match="no camera named"):
         Camera(model, "nope", 8)
+
+
+@pytest.mark.parametrize("name", ["planar_reach", "nicol_lift"])
+def test_render_equals_mjx_ray_cast_per_pixel(name):
+    """The fused renderer sees what `mjx.ray` sees, pixel by pixel, over random poses (on the
+    CPU exactly; a GPU rounds some ray-grazing silhouette pixels differently, README)."""
+    env = envs_mjx.make(name)
+    cam, model = env.camera, env.mjx_model
+    hinges = env.mj_model.jnt_qposadr[env.mj_model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE]
+    home = env.mj_model.key("home").qpos if env.mj_model.nkey else env.mj_model.qpos0
+
+    @jax.jit
+    @jax.vmap
+    def both(key):
+        offset = jax.random.uniform(key, (len(hinges),), minval=-0.5, maxval=0.5)
+        data = mjx.make_data(model).replace(qpos=jnp.asarray(home, jnp.float32).at[hinges].add(offset))
+        data = mjx.kinematics(model, data)
+        ids = jax.vmap(lambda v: mjx.ray(model, data, jnp.asarray(cam.position), v, geomgroup=VISIBLE_GROUPS)[1])(
+            jnp.asarray(cam.directions)
+        )
+        return cam.render(model, data)[..., 0], jnp.asarray(cam.gray_levels)[ids].reshape(cam.resolution, -1)
+
+    image, reference = (np.asarray(x) for x in both(jax.random.split(jax.random.PRNGKey(0), 8)))
+    assert len(np.unique(image)) >= 4  # several geoms in view, not a blank frame
+    np.testing.assert_array_equal(image, reference)
+
+
+def test_a_visible_cylinder_is_refused_with_a_clear_error():
+    model = mujoco.MjModel.from_xml_string(
+        """<mujoco><asset><material name="m"/></asset><worldbody><camera name="c"/>
+        <geom type="cylinder" size="0.1 0.1" material="m"/></worldbody></mujoco>"""
+    )
+    with pytest.raises(ValueError, match="geom 0 is a visible mjGEOM_CYLINDER"):
+        Camera(model, "c", 8)
