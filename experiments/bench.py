@@ -1,5 +1,6 @@
-"""Throughput benchmark: env steps per second of MJX physics, physics + camera, whole
-training epochs, and native MuJoCo (`mujoco.rollout`, 2 threads) as the yardstick.
+"""Throughput benchmark: env steps per second of MJX physics, physics + camera, frames per
+second of the camera alone, whole training epochs, and native MuJoCo (`mujoco.rollout`,
+2 threads) as the yardstick.
 
     python -m experiments.bench                       # planar_reach, 64/256/1024 envs
     python -m experiments.bench --envs ur5_reach nicol_slide --num-envs 64 256
@@ -56,6 +57,15 @@ def env_steps_per_second(name: str, num_envs: int, render: bool, steps: int, rep
     key = jax.random.PRNGKey(0)
     seconds = _timed(lambda: run(key).block_until_ready(), repeats)
     return num_envs * steps / seconds
+
+
+def camera_frames_per_second(name: str, num_envs: int, repeats: int) -> float:
+    """The camera alone: frames per second rendering `num_envs` reset states in one jit."""
+    env = envs_mjx.make(name, render=False)
+    data = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), num_envs)).data
+    render = jax.jit(jax.vmap(lambda d: env.camera.render(env.mjx_model, d)))
+    seconds = _timed(lambda: render(data).block_until_ready(), repeats)
+    return num_envs / seconds
 
 
 def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int) -> float:
@@ -124,6 +134,7 @@ def main(argv: list[str] | None = None) -> None:
             row = {"env": name, "num_envs": n}
             row["physics"] = env_steps_per_second(name, n, False, args.steps, args.repeats)
             row["physics+camera"] = env_steps_per_second(name, n, True, args.steps, args.repeats)
+            row["camera alone (frames/s)"] = camera_frames_per_second(name, n, args.repeats)
             if not args.skip_train:
                 row[f"train epoch ({args.agent})"] = training_steps_per_second(name, args.agent, n, args.repeats)
             if not args.skip_native:

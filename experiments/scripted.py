@@ -19,7 +19,7 @@ import argparse
 import jax
 import jax.numpy as jnp
 
-from envs_mjx.base import Env, ObservationSpec
+from envs_mjx.base import Env, ObservationSpec, State
 from envs_mjx.nicol import MAX_MOVE, NicolLift, NicolSlide
 
 FINGERS_ENGAGED = 0.3  # rad of finger closure: a grasp is under way
@@ -77,19 +77,24 @@ def grasp_policy(obs: dict[str, jax.Array], spec: ObservationSpec) -> jax.Array:
     return _action(move, fingers, thumb)
 
 
-def evaluate(env: Env, policy, key: jax.Array, n_episodes: int) -> jax.Array:
-    """Success (at the last step, as in the env) of `policy` over vmapped episodes."""
+def run_episodes(env: Env, policy, states: State) -> jax.Array:
+    """Success (at the last step, as in the env) of `policy` from each of the batched
+    initial `states`. Apart from the states it depends on the env's step only, so one
+    compiled program serves every task that shares a step (nicol_slide and nicol_lift)."""
 
-    def episode(key):
-        state = env.reset(key)
-
+    def episode(state):
         def body(state, _):
             return env.step(state, policy(state.obs, env.observation_spec)), None
 
         state, _ = jax.lax.scan(body, state, None, length=env.episode_length)
         return state.metrics["success"]
 
-    return jax.vmap(episode)(jax.random.split(key, n_episodes))
+    return jax.vmap(episode)(states)
+
+
+def evaluate(env: Env, policy, key: jax.Array, n_episodes: int) -> jax.Array:
+    """Success of `policy` over `n_episodes` episodes from `env.reset`."""
+    return run_episodes(env, policy, jax.vmap(env.reset)(jax.random.split(key, n_episodes)))
 
 
 def main(argv: list[str] | None = None) -> None:

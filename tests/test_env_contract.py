@@ -15,58 +15,66 @@ import envs_mjx
 ENV_NAMES = tuple(name for name in envs_mjx.names() if name != "nicol_lift_reduced")
 
 
+N_ENVS, N_STEPS = 10, 100  # 1,000 random steps, beyond the episode length too
+
+
 @functools.lru_cache(maxsize=None)
 def compiled(name):
-    """One env per name with its jitted reset, step and a vmapped random rollout."""
+    """One env per name with its jitted, vmapped reset and a random rollout from given states.
+
+    The rollout depends on the env's step alone, so envs that share a step (nicol_slide and
+    nicol_lift) share its compiled program through the persistent compilation cache."""
     env = envs_mjx.make(name)
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    resets = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), N_ENVS))
 
-    @functools.partial(jax.jit, static_argnums=(1, 2))
-    def random_rollout(key, n_envs, n_steps):
-        keys = jax.random.split(key, n_envs + 1)
-        state = jax.vmap(env.reset)(keys[1:])
-
+    @jax.jit
+    def random_rollout(state, key):
         def body(state, k):
-            action = jax.random.uniform(k, (n_envs, env.action_size), minval=-1.5, maxval=1.5)
+            action = jax.random.uniform(k, (N_ENVS, env.action_size), minval=-1.5, maxval=1.5)
             state = jax.vmap(env.step)(state, action)
             return state, (state.obs["proprio"], state.data.qpos, state.obs["achieved_goal"])
 
-        return jax.lax.scan(body, state, jax.random.split(keys[0], n_steps))
+        return jax.lax.scan(body, state, jax.random.split(key, N_STEPS))
 
-    return env, reset, step, random_rollout
+    return env, resets, random_rollout
+
+
+@functools.lru_cache(maxsize=None)
+def rollout(name, seed):
+    env, resets, random_rollout = compiled(name)
+    return random_rollout(resets, jax.random.PRNGKey(seed))
 
 
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_reset_and_step_match_the_spec(name):
-    env, reset, step, _ = compiled(name)
-    state = reset(jax.random.PRNGKey(0))
-    state = step(state, jnp.zeros(env.action_size))
-    for key, (shape, dtype) in env.observation_spec.shapes().items():
-        assert state.obs[key].shape == shape, key
-        assert state.obs[key].dtype == dtype, key
-    assert state.obs["image"].shape == (42, 42, 1)
-    assert state.reward.shape == () and state.reward.dtype == jnp.float32
-    assert int(state.info["step"]) == 1
+    env, resets, _ = compiled(name)
+    final, _ = rollout(name, 1)
+    for state in (resets, final):
+        for key, (shape, dtype) in env.observation_spec.shapes().items():
+            assert state.obs[key].shape == (N_ENVS, *shape), key
+            assert state.obs[key].dtype == dtype, key
+        assert state.obs["image"].shape == (N_ENVS, 42, 42, 1)
+        assert state.reward.shape == (N_ENVS,) and state.reward.dtype == jnp.float32
+    assert (np.asarray(resets.info["step"]) == 0).all() and (np.asarray(final.info["step"]) == N_STEPS).all()
     assert env.episode_length > 0 and env.action_size > 0
 
 
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_no_nan_over_a_thousand_random_steps_and_deterministic(name):
-    env, _, _, random_rollout = compiled(name)
-    n_envs, n_steps = 10, 100  # 1,000 steps, beyond the episode length too
-    final, (proprio, qpos, ag) = random_rollout(jax.random.PRNGKey(1), n_envs, n_steps)
+    _, (proprio, qpos, ag) = rollout(name, 1)
     assert np.isfinite(np.asarray(proprio)).all()
     assert np.isfinite(np.asarray(qpos)).all()
     assert np.isfinite(np.asarray(ag)).all()
-    _, (proprio2, _, _) = random_rollout(jax.random.PRNGKey(1), n_envs, n_steps)
+    env, resets, random_rollout = compiled(name)
+    _, (proprio2, _, _) = random_rollout(resets, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(proprio), np.asarray(proprio2))
-    _, (proprio3, _, _) = random_rollout(jax.random.PRNGKey(2), n_envs, n_steps)
+    _, (proprio3, _, _) = rollout(name, 2)
     assert not np.array_equal(np.asarray(proprio), np.asarray(proprio3))
 
 
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_reward_is_sparse_and_batched(name):
-    env, reset, _, _ = compiled(name)
+    env, _, _ = compiled(name)
     g = env.observation_spec.goal_size
     goal = np.zeros((3, g), np.float32)
     ag = goal.copy()
@@ -77,8 +85,8 @@ def test_reward_is_sparse_and_batched(name):
 
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_nan_action_is_rejected_outside_jit(name):
-    env, reset, _, _ = compiled(name)
-    state = reset(jax.random.PRNGKey(0))
+    env, resets, _ = compiled(name)
+    state = jax.tree.map(lambda x: x[0], resets)
     with pytest.raises(ValueError, match="NaN"):
         env.step(state, jnp.full(env.action_size, jnp.nan))
 
@@ -87,9 +95,9 @@ def test_nan_action_is_rejected_outside_jit(name):
 def test_mjx_matches_mujoco_mj_step(name):
     """Same model, same controls: MJX (float32) and native MuJoCo (float64) agree on qpos within 1e-3 over 100
     substeps; a mismatched integrator or actuator model differs by 0.05 or more."""
-    env, reset, _, _ = compiled(name)
+    env, resets, _ = compiled(name)
     m = env.mj_model
-    state = reset(jax.random.PRNGKey(3))
+    state = jax.tree.map(lambda x: x[3], resets)
     d = mujoco.MjData(m)
     d.qpos[:] = np.asarray(state.data.qpos)
     d.qvel[:] = np.asarray(state.data.qvel)
