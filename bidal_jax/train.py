@@ -18,8 +18,8 @@ from flax import struct
 from bidal_jax import normalizer, replay
 from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
 from bidal_jax.losses import make_losses
-from bidal_jax.validate import ConfigError
 from bidal_jax.networks import make_networks
+from bidal_jax.validate import check_env_support
 
 
 @struct.dataclass
@@ -49,10 +49,7 @@ def polyak(target: Any, online: Any, tau: float) -> Any:
 
 def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainConfig):
     """Build `init(key) -> TrainState` and `epoch(TrainState) -> (TrainState, metrics)`."""
-    if config.exploration_starts > 0 and not env.has_exploration_start:
-        raise ConfigError(
-            f"--exploration-starts {config.exploration_starts}: env {env.name} has no exploration start; must be 0"
-        )
+    check_env_support(config, env)
     spec = env.observation_spec
     horizon = env.episode_length
     networks = make_networks(agent, net_config, spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)

@@ -135,3 +135,12 @@ def check(
                 f"{option(name)} {value}: must be a multiple of the device count {device_count} "
                 "(environments are split evenly over devices)"
             )
+
+
+def check_env_support(train: TrainConfig, env: Any) -> None:
+    """Raise `ConfigError` when `train` asks `env` for something it lacks (exploration starts)."""
+    if train.exploration_starts > 0 and not env.has_exploration_start:
+        raise ConfigError(
+            f"{option('exploration_starts')} {train.exploration_starts}: env {env.name} has no exploration start; "
+            "must be 0"
+        )

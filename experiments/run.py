@@ -206,6 +206,7 @@ def prepare(args: argparse.Namespace) -> tuple[RunConfig, TrainConfig, NetworkCo
 
     def check(configs: tuple[RunConfig, TrainConfig, NetworkConfig]) -> None:
         validate.check(*configs, env_names=envs_mjx.names(), device_count=jax.device_count())
+        validate.check_env_support(configs[1], envs_mjx.make(configs[0].env, render=False))
 
     configs = configs_from_args(args)
     check(configs)  # the values given on the command line

@@ -79,6 +79,8 @@ BAD_COMMAND_LINES = {
     "tau zero": (["--tau", "0"], ["--tau 0.0", "(0, 1]"]),
     "tau above one": (["--tau", "1.5"], ["--tau 1.5", "(0, 1]"]),
     "probability above one": (["--random-eps", "1.5"], ["--random-eps 1.5", "[0, 1]"]),
+    "exploration starts above one": (["--exploration-starts", "1.5"], ["--exploration-starts 1.5", "[0, 1]"]),
+    "exploration starts the env lacks": (["--exploration-starts", "0.5"], ["--exploration-starts 0.5", "env planar_reach", "must be 0"]),
     "negative target success": (["--target-success", "-0.1"], ["--target-success -0.1", "[0, 1]"]),
     "negative noise": (["--noise-eps", "-0.2"], ["--noise-eps -0.2", ">= 0"]),
     "negative her k": (["--her-k", "-1"], ["--her-k -1", ">= 0"]),
