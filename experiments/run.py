@@ -206,19 +206,22 @@ def prepare(args: argparse.Namespace) -> tuple[RunConfig, TrainConfig, NetworkCo
 
     def check(configs: tuple[RunConfig, TrainConfig, NetworkConfig]) -> None:
         validate.check(*configs, env_names=envs_mjx.names(), device_count=jax.device_count())
-        validate.check_env_support(configs[1], envs_mjx.make(configs[0].env, render=False))
 
     configs = configs_from_args(args)
     check(configs)  # the values given on the command line
     if args.resume:
         configs = resumed_configs(args)
         check(configs)  # the checkpoint's
-        return configs
-    run = configs[0]
-    if not run.run_dir:
-        run = dataclasses.replace(run, run_dir=os.path.join("runs", f"{run.env}-{run.agent}-{time.strftime('%Y%m%d-%H%M%S')}"))
-    _check_run_dir(run.run_dir, args.overwrite)
-    return (run, *configs[1:])
+    else:
+        run = configs[0]
+        if not run.run_dir:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            run = dataclasses.replace(run, run_dir=os.path.join("runs", f"{run.env}-{run.agent}-{stamp}"))
+        _check_run_dir(run.run_dir, args.overwrite)
+        configs = (run, *configs[1:])
+    # what the env must offer, checked once on the configs the run will use (builds the env, no compile)
+    validate.check_env_support(configs[1], envs_mjx.make(configs[0].env, render=False))
+    return configs
 
 
 def _write_atomic(path: str, text: str) -> None:
