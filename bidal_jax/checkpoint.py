@@ -1,8 +1,11 @@
 """Orbax checkpoints of the whole `TrainState` plus the run's config (DESIGN.md).
 
-A checkpoint directory `<run>/checkpoints/<epoch>/` holds three items: `state` (all
-parameters, optimiser states, targets, normalisers, replay buffer, rng, counters),
+A checkpoint directory `<run>/checkpoints/<epoch>/` holds four items: `state` (all
+parameters, optimiser states, targets, normalisers, rng, counters), `buffer` (the replay
+buffer, kept apart so that acting and transfer never read it and it can be deleted),
 `config` (the run's config as JSON) and `digest` (a CRC-32 per state leaf, as JSON).
+A manager keeps the latest two checkpoints and the best one by evaluation success
+(`resolve_step(directory, "best")` finds it).
 
 Crash safety: Orbax writes each step to `<epoch>.orbax-checkpoint-tmp/` and renames it
 when complete, so a process killed at any moment (even mid-save) leaves the previous
@@ -12,12 +15,13 @@ TensorStore reject truncated or missing files, and the digest catches flipped by
 which they would load without complaint. Every failure is a `CheckpointError` whose
 message says which checkpoint and what is wrong with it.
 
-`restore_subtrees` lifts named parameter subtrees (encoder, forward, inverse, ...) out
-of a checkpoint for transfer.
+`restore_partial` reads only named leaves (e.g. the acting parameters and normalisers)
+with Orbax partial restore, checked against the digest like a full restore.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import zlib
 from typing import Any
@@ -31,21 +35,36 @@ class CheckpointError(Exception):
     """A checkpoint that cannot be used: missing, damaged, or written for another run."""
 
 
-def _handlers() -> dict[str, ocp.CheckpointHandler]:
+BEST_METRIC = "eval_success"
+ARRAY_ITEMS = ("state", "buffer")
+
+
+def _handlers(partial: bool = False) -> dict[str, ocp.CheckpointHandler]:
+    """The items' handlers; a partial restore reads `state` with the PyTree handler it was saved in."""
     return {
-        "state": ocp.StandardCheckpointHandler(),
+        "state": ocp.PyTreeCheckpointHandler() if partial else ocp.StandardCheckpointHandler(),
+        "buffer": ocp.StandardCheckpointHandler(),
         "config": ocp.JsonCheckpointHandler(),
         "digest": ocp.JsonCheckpointHandler(),
     }
 
 
-def manager(directory: str, max_to_keep: int = 2) -> ocp.CheckpointManager:
-    """A writing manager; creates `directory` and removes unfinished saves left in it."""
-    return ocp.CheckpointManager(
-        os.path.abspath(directory),
-        options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True, cleanup_tmp_directories=True),
-        item_handlers=_handlers(),
+def manager(directory: str, keep_latest: int = 2) -> ocp.CheckpointManager:
+    """A writing manager that keeps the `keep_latest` newest checkpoints and the best one
+    (highest `eval_success` given to `save`); creates `directory` and removes unfinished saves."""
+    policy = ocp.checkpoint_managers.AnyPreservationPolicy([
+        ocp.checkpoint_managers.LatestN(n=keep_latest),
+        ocp.checkpoint_managers.BestN(get_metric_fn=_best_metric, n=1, keep_checkpoints_without_metrics=False),
+    ])
+    # best_fn makes the manager write each step's metrics to disk, so the best survives a resume
+    options = ocp.CheckpointManagerOptions(
+        preservation_policy=policy, best_fn=_best_metric, create=True, cleanup_tmp_directories=True
     )
+    return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_handlers=_handlers())
+
+
+def _best_metric(metrics: dict) -> float:
+    return metrics[BEST_METRIC]
 
 
 def leaf_name(path: tuple) -> str:
@@ -59,15 +78,25 @@ def digest(state: Any) -> dict[str, int]:
     return {leaf_name(path): zlib.crc32(np.ascontiguousarray(leaf)) for path, leaf in leaves}
 
 
-def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict) -> None:
-    """Save `state`, `config` and the state's digest as `step`; wait until it is on disk."""
+def _split(state: Any) -> tuple[dict, Any]:
+    """A training state as (its fields but the buffer, as a dict; the buffer)."""
+    fields = {f.name: getattr(state, f.name) for f in dataclasses.fields(state) if f.name != "buffer"}
+    return fields, state.buffer
+
+
+def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float) -> None:
+    """Save `state` (buffer apart), `config` and the state's digest as `step`, ranked by
+    `eval_success` for the best checkpoint; wait until it is on disk."""
+    fields, buffer = _split(state)
     mngr.save(
         step,
         args=ocp.args.Composite(
-            state=ocp.args.StandardSave(state),
+            state=ocp.args.StandardSave(fields),
+            buffer=ocp.args.StandardSave(buffer),
             config=ocp.args.JsonSave(config),
             digest=ocp.args.JsonSave({"crc32": digest(state)}),
         ),
+        metrics={BEST_METRIC: float(eval_success)},
     )
     mngr.wait_until_finished()
 
@@ -82,6 +111,34 @@ def steps(directory: str) -> list[int]:
 def latest_step(directory: str) -> int | None:
     found = steps(directory)
     return found[-1] if found else None
+
+
+def best_step(directory: str) -> int | None:
+    """The checkpoint with the highest saved eval success (the latest of equals), or None."""
+    found = steps(directory)
+    if not found:
+        return None
+    options = ocp.CheckpointManagerOptions(read_only=True, best_fn=_best_metric)
+    mngr = ocp.CheckpointManager(os.path.abspath(directory), options=options)
+    try:
+        ranked = [(m[BEST_METRIC], s) for s in found if (m := mngr.metrics(s)) and BEST_METRIC in m]
+    finally:
+        mngr.close()
+    return max(ranked)[1] if ranked else None
+
+
+def resolve_step(directory: str, step: int | str | None) -> int:
+    """A checkpoint step from None (latest), an int (or its string) or "best"; CheckpointError if absent."""
+    if step == "best":
+        best = best_step(directory)
+        if best is None:
+            raise CheckpointError(f"no checkpoint with an eval success in {directory}")
+        return best
+    if isinstance(step, str):
+        if not step.isdigit():
+            raise CheckpointError(f"checkpoint {step!r}: must be a step number or 'best'")
+        step = int(step)
+    return _step_dir(directory, step)[1]
 
 
 def _step_dir(directory: str, step: int | None) -> tuple[str, int]:
@@ -119,11 +176,12 @@ def read_config(directory: str, step: int | None = None) -> dict:
     return config
 
 
-def _check_structure(saved: Any, target: Any, where: str) -> None:
-    """Raise unless the saved state's leaves have the target's names, shapes and dtypes."""
+def _check_structure(saved: Any, target: Any, where: str, partial: bool = False) -> None:
+    """Raise unless the saved leaves have the target's names, shapes and dtypes (with `partial`,
+    the saved state may hold more leaves than the target)."""
     have = {leaf_name(p): leaf for p, leaf in jax.tree_util.tree_flatten_with_path(saved)[0]}
     want = {leaf_name(p): leaf for p, leaf in jax.tree_util.tree_flatten_with_path(target)[0]}
-    missing, extra = sorted(set(want) - set(have)), sorted(set(have) - set(want))
+    missing, extra = sorted(set(want) - set(have)), [] if partial else sorted(set(have) - set(want))
     if missing or extra:
         raise CheckpointError(
             f"{where} holds a state of another shape: "
@@ -145,35 +203,66 @@ def restore(directory: str, abstract_state: Any, step: int | None = None) -> tup
     """
     path, step = _step_dir(directory, step)
     where = f"checkpoint {step} in {directory}"
+    fields, buffer = _split(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
+    saved = _metadata(path, where)
+    _check_structure(saved, {"state": fields, "buffer": buffer}, where)
+    restored = _restore_checked(path, where, {
+        "state": ocp.args.StandardRestore(fields),
+        "buffer": ocp.args.StandardRestore(buffer),
+        "config": ocp.args.JsonRestore(),
+    })
+    state = type(abstract_state)(**restored["state"], buffer=restored["buffer"])
+    return state, restored["config"], step
+
+
+def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
+    """{"state": tree, "buffer": tree} (the items `names`) of a checkpoint's array metadata (shapes, dtypes; no data)."""
     reader = ocp.Checkpointer(ocp.CompositeCheckpointHandler(**_handlers()))
-    target = jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state)
     try:
         items = reader.metadata(path).item_metadata
-        saved = items["state"]
+        saved = {name: items[name] for name in names}
     except Exception as err:
         raise CheckpointError(f"{where} is damaged: its metadata cannot be read ({_reason(err)})") from err
-    if saved is None:
-        raise CheckpointError(f"{where} is damaged: it has no state")
-    _check_structure(saved, target, where)
-    args = {"state": ocp.args.StandardRestore(target), "config": ocp.args.JsonRestore()}
-    if "digest" in items:  # checkpoints written before digests existed have none
-        args["digest"] = ocp.args.JsonRestore()
+    missing = [name for name, tree in saved.items() if tree is None]
+    if missing:
+        raise CheckpointError(f"{where} is damaged: it has no {missing[0]}")
+    return {name: dict(tree) for name, tree in saved.items()}
+
+
+def read_metadata(directory: str, step: int | None = None, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
+    """The array metadata (shape, dtype) of a checkpoint's `state` and `buffer` items (or those
+    in `names`); reads no array."""
+    path, step = _step_dir(directory, step)
+    return _metadata(path, f"checkpoint {step} in {directory}", names)
+
+
+def _restore_checked(path: str, where: str, args: dict, partial: bool = False) -> dict:
+    """Restore the items `args` and check every restored array against the saved digest."""
+    reader = ocp.Checkpointer(ocp.CompositeCheckpointHandler(**_handlers(partial)))
     try:
-        restored = reader.restore(path, args=ocp.args.Composite(**args))
+        restored = reader.restore(path, args=ocp.args.Composite(**args, digest=ocp.args.JsonRestore()))
     except Exception as err:
         raise CheckpointError(f"{where} is damaged: {_reason(err)}") from err
-    if "digest" in args:
-        expected = (restored["digest"] or {}).get("crc32", {})
-        bad = [name for name, crc in digest(restored["state"]).items() if expected.get(name) != crc]
-        if bad:
-            raise CheckpointError(f"{where} is corrupted: {', '.join(bad[:3])} does not match its saved checksum")
-    return restored["state"], restored["config"], step
+    expected = (restored["digest"] or {}).get("crc32", {})
+    arrays = {name: restored[name] for name in ARRAY_ITEMS if name in args}
+    found = {**digest(arrays.get("state", {})), **{f"buffer/{k}": v for k, v in digest(arrays.get("buffer", {})).items()}}
+    bad = [name for name, crc in found.items() if expected.get(name) != crc]
+    if bad:
+        raise CheckpointError(f"{where} is corrupted: {', '.join(bad[:3])} does not match its saved checksum")
+    return restored
 
 
-def restore_subtrees(directory: str, abstract_state: Any, names: tuple[str, ...], step: int | None = None) -> dict:
-    """The parameter subtrees `names` of a checkpoint, e.g. ("encoder", "forward", "inverse")."""
-    state, _, _ = restore(directory, abstract_state, step)
-    missing = [n for n in names if n not in state.params]
-    if missing:
-        raise CheckpointError(f"checkpoint has no parameter subtrees {missing}; it has {sorted(state.params)}")
-    return {n: state.params[n] for n in names}
+def restore_partial(directory: str, step: int | None, wanted: Any) -> dict:
+    """Only the leaves of the `state` item named by `wanted` (a sub-tree of `read_metadata(...)["state"]`
+    or of shape/dtype structs), with Orbax partial restore; the buffer is never read.
+
+    Raises CheckpointError when a wanted leaf is missing, damaged or fails its checksum.
+    """
+    path, step = _step_dir(directory, step)
+    where = f"checkpoint {step} in {directory}"
+    target = jax.tree.map(ocp.utils.to_shape_dtype_struct, wanted)
+    _check_structure(_metadata(path, where, ("state",))["state"], target, where, partial=True)
+    args = ocp.args.PyTreeRestore(
+        item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True
+    )
+    return _restore_checked(path, where, {"state": args}, partial=True)["state"]

@@ -63,7 +63,7 @@ class TrainConfig:
     updates_per_cycle: int = doc(40, "gradient updates after each cycle's rollout")
     batch_size: int = doc(256, "transitions per gradient update")
     buffer_episodes: int = doc(4096, "replay capacity in episodes (a multiple of num_envs)")
-    gamma: float = doc(0.98, "discount γ; the critic target is clipped to [-1/(1-γ), 0]")
+    gamma: float = doc(0.98, "discount γ; the critic target is clipped to [r_min/(1-γ), 0] (losses.min_reward)")
     tau: float = doc(0.05, "Polyak rate of the target networks, applied after every gradient update")
     actor_lr: float = doc(1e-3, "Adam learning rate of the actor")
     critic_lr: float = doc(1e-3, "Adam learning rate of the critic, encoder, forward and inverse models")
@@ -73,7 +73,8 @@ class TrainConfig:
     exploration_starts: float = doc(
         0.0,
         "fraction of training episodes begun by the env's exploration_reset (nicol_lift: the cube "
-        "already held, as HER's pick-and-place); evaluation always begins from reset",
+        "already held, as HER's pick-and-place); evaluation always begins from reset. The paper uses "
+        "none (0, the default); 0.5 is the labelled 'held starts' variant of lifting",
     )
     her_k: int = doc(4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)")
     intrinsic_lambda: float = doc(0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)")
@@ -119,8 +120,6 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
                 "batch_size": 2048,
                 "buffer_episodes": 16384,
                 "eval_envs": 128,
-                # lifting: half the training episodes begin with the cube held (README, "Results")
-                "exploration_starts": 0.5 if "lift" in name else 0.0,
             },
         }
         for name in ("nicol_slide", "nicol_lift", "nicol_lift_reduced")
@@ -139,3 +138,35 @@ def env_preset(env: str, agent: str) -> dict[str, dict[str, Any]]:
         for group, values in IMAGE_AGENT_PRESETS.get(env, {}).items():
             preset.setdefault(group, {}).update(values)
     return preset
+
+
+CONFIG_CLASSES: dict[str, type] = {"run": RunConfig, "train": TrainConfig, "network": NetworkConfig}
+
+
+class ConfigFormatError(ValueError):
+    """A stored config (config.json, a checkpoint's) that this version cannot read."""
+
+
+def to_dict(run: RunConfig, train: TrainConfig, network: NetworkConfig) -> dict[str, dict[str, Any]]:
+    """The three configs as JSON-ready {"run": {...}, "train": {...}, "network": {...}}."""
+    return {name: dataclasses.asdict(cfg) for name, cfg in zip(CONFIG_CLASSES, (run, train, network))}
+
+
+def from_dict(cfg: dict, where: str) -> tuple[RunConfig, TrainConfig, NetworkConfig]:
+    """The inverse of `to_dict`; fields newer than `cfg` take their defaults. Raises
+    ConfigFormatError naming `where` for a dict that is not such a config."""
+    try:
+        return tuple(cls(**cfg[name]) for name, cls in CONFIG_CLASSES.items())  # type: ignore[return-value]
+    except (KeyError, TypeError) as err:
+        raise ConfigFormatError(f"{where} has a config this version cannot read ({err})") from err
+
+
+def resolve(given: dict[str, Any]) -> tuple[RunConfig, TrainConfig, NetworkConfig]:
+    """The configs of a new run: defaults, then the env's (and image agent's) preset, then
+    `given` (field name -> value, e.g. from the command line; unknown names are ignored)."""
+    run = RunConfig(**{f.name: given[f.name] for f in dataclasses.fields(RunConfig) if f.name in given})
+    preset = env_preset(run.env, run.agent)
+    return tuple(  # type: ignore[return-value]
+        cls(**{**preset.get(name, {}), **{f.name: given[f.name] for f in dataclasses.fields(cls) if f.name in given}})
+        for name, cls in CONFIG_CLASSES.items()
+    )

@@ -2,7 +2,10 @@
 
 - Intrinsic reward (Eq. 4): r_i = -λ/2 ‖f(φ(s_t), a_t) - φ(s_{t+1})‖².
 - Critic (Eq. 8): (Q(s_t, a_t, g) - y_t)², y_t = clip(r_e + r_i + γ Q'(s_{t+1}, μ'(s_{t+1}, g), g),
-  -1/(1-γ), 0), with target networks Q', μ' and target encoder φ'.
+  r_min/(1-γ), 0), with target networks Q', μ' and target encoder φ'. The clip is HER's
+  (the paper has none). HER's floor -1/(1-γ) would erase r_i wherever success is out of
+  reach; ours is the return of the most negative reward r_min = -1 - 2λL (`min_reward`;
+  docs/deviations.md).
 - Forward model (Eq. 3): e = ½‖f(φ(s_t), a_t) - sg[φ(s_{t+1})]‖²; inverse model (Eq. 5):
   ½‖g(φ(s_t), φ(s_{t+1})) - a_t‖².
 - Actor (Eq. 7, DDPG): -Q(s, μ(s, g), g) + c‖μ(s, g)‖², on a stopped φ(s).
@@ -23,6 +26,8 @@ import jax.numpy as jnp
 from bidal_jax.config import TrainConfig
 from bidal_jax.networks import Networks
 
+MIN_EXTRINSIC_REWARD = -1.0  # the sparse r_e ∈ {-1, 0} (Eq. 6)
+
 
 def intrinsic_reward(predicted_next_phi: jax.Array, next_phi: jax.Array, lam: float) -> jax.Array:
     """Paper Eq. 4: -λ/2 ‖φ̂(s_{t+1}) - φ(s_{t+1})‖², per transition."""
@@ -30,10 +35,26 @@ def intrinsic_reward(predicted_next_phi: jax.Array, next_phi: jax.Array, lam: fl
     return -0.5 * lam * jnp.sum(jnp.square(predicted_next_phi - next_phi), axis=-1)
 
 
-def critic_target(reward: jax.Array, next_q: jax.Array, gamma: float) -> jax.Array:
-    """Eq. 8's target y = r + γQ', clipped to the return range [-1/(1-γ), 0] of rewards ≤ 0."""
+def min_reward(lam: float, latent_size: int) -> float:
+    """r_min, the most negative reward r = r_e + r_i (Eq. 8) of a prediction within φ's range.
+
+    r_e ≥ -1 (Eq. 6). The encoder ends in tanh (φ(s) = tanh(LayerNorm(·)) ∈ [-1, 1]^L,
+    networks.Encoder; every BidAL agent has it), so a prediction φ̂ in that box misses φ(s')
+    by at most 2 per entry: ‖φ̂ - φ(s')‖² ≤ 4L and r_i ≥ -2λL (Eq. 4). The forward model's
+    last layer is linear, so a prediction outside the box can give a reward below r_min,
+    whose target may then be floored, as HER's clip floors any reward below its range.
+    A fixed bound, not the batch's smallest reward: the floor of a return must not depend
+    on which other transitions were sampled with it. λ = 0 (no forward model) gives HER's
+    r_min = -1.
+    """
+    return MIN_EXTRINSIC_REWARD - 2.0 * lam * latent_size
+
+
+def critic_target(reward: jax.Array, next_q: jax.Array, gamma: float, r_min: float) -> jax.Array:
+    """Eq. 8's target y = r + γQ', clipped to [r_min/(1-γ), 0]: the range of the returns of
+    rewards in [r_min, 0] (r_min from `min_reward`)."""
     chex.assert_equal_shape([reward, next_q])
-    return jnp.clip(reward + gamma * next_q, -1.0 / (1.0 - gamma), 0.0)
+    return jnp.clip(reward + gamma * next_q, r_min / (1.0 - gamma), 0.0)
 
 
 def half_squared_error(pred: jax.Array, target: jax.Array) -> jax.Array:
@@ -53,6 +74,8 @@ class Losses:
 
 
 def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
+    r_min = min_reward(config.intrinsic_lambda if bidal else 0.0, networks.latent_size)
+
     def encode_pair(enc_params, batch):
         """φ(s_t) and φ(s_{t+1}) in one encoder pass."""
         images = None
@@ -79,7 +102,7 @@ def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
             loss = config.forward_weight * forward_loss + config.inverse_weight * inverse_loss
             reward = reward + r_i
             aux.update(forward_loss=forward_loss, inverse_loss=inverse_loss, intrinsic_reward=r_i.mean())
-        y = jax.lax.stop_gradient(critic_target(reward, next_q, config.gamma))
+        y = jax.lax.stop_gradient(critic_target(reward, next_q, config.gamma, r_min))
         q = networks.critic(params["critic"], phi, batch["action"], batch["goal"])
         critic_loss = jnp.mean(jnp.square(q - y))
         aux.update(critic_loss=critic_loss, q=q.mean(), phi=jax.lax.stop_gradient(phi))

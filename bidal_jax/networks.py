@@ -102,6 +102,9 @@ def _mlp(x: jax.Array, width: int, layers: int) -> jax.Array:
     return x
 
 
+ACTION_LAYER = "action"  # the actor's output layer: its bias has the action size
+
+
 class Actor(nn.Module):
     """μ(ψ(s), η(g)) ∈ [-1, 1]^A with UVFA embeddings of state and goal."""
 
@@ -115,7 +118,7 @@ class Actor(nn.Module):
         psi = nn.elu(nn.Dense(cfg.embed_size, name="psi")(phi))
         eta = nn.elu(nn.Dense(cfg.embed_size, name="eta")(goal))
         x = _mlp(jnp.concatenate([psi, eta], axis=-1), cfg.hidden_size, cfg.hidden_layers)
-        return jnp.tanh(nn.Dense(self.action_size)(x))
+        return jnp.tanh(nn.Dense(self.action_size, name=ACTION_LAYER)(x))
 
 
 class Critic(nn.Module):

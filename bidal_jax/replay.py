@@ -51,6 +51,26 @@ def insert(state: ReplayState, batch: dict[str, jax.Array]) -> ReplayState:
     return ReplayState(episodes=episodes, position=(state.position + n) % cap, size=jnp.minimum(state.size + n, cap))
 
 
+def _draw(episodes: dict, key: jax.Array, n: int, n_episodes: jax.Array | int, future_p: float):
+    """n transitions (episode, step t) drawn uniformly from the first `n_episodes` episodes, and
+    their goals: with probability `future_p` the achieved goal of a later step t' ∈ [t+1, T]
+    (HER `future`), else the episode's desired goal. Returns (ep, t, t', relabelled, goal)."""
+    horizon = episodes["action"].shape[1]
+    key_ep, key_t, key_her, key_future = jax.random.split(key, 4)
+    ep = jax.random.randint(key_ep, (n,), 0, n_episodes)
+    t = jax.random.randint(key_t, (n,), 0, horizon)
+    future_t = jax.random.randint(key_future, (n,), t + 1, horizon + 1)
+    relabel = jax.random.uniform(key_her, (n,)) < future_p
+    goal = jnp.where(relabel[:, None], episodes["achieved_goal"][ep, future_t], episodes["desired_goal"][ep])
+    return ep, t, future_t, relabel, goal
+
+
+def her_goals(episodes: dict[str, jax.Array], key: jax.Array, n: int, future_p: float) -> jax.Array:
+    """The goals [n, G] of n transitions of `episodes` relabelled as `sample` relabels them: what
+    the goal normaliser sees (HER's reference normalises the goals the critic is given)."""
+    return _draw(episodes, key, n, jax.tree.leaves(episodes)[0].shape[0], future_p)[-1]
+
+
 def sample(
     state: ReplayState,
     key: jax.Array,
@@ -60,13 +80,7 @@ def sample(
 ) -> dict[str, jax.Array]:
     """A batch of HER-relabelled transitions (s_t, a_t, s_{t+1}, g, r_e) and their indices."""
     eps = state.episodes
-    horizon = eps["action"].shape[1]
-    key_ep, key_t, key_her, key_future = jax.random.split(key, 4)
-    ep = jax.random.randint(key_ep, (batch_size,), 0, jnp.maximum(state.size, 1))
-    t = jax.random.randint(key_t, (batch_size,), 0, horizon)
-    future_t = jax.random.randint(key_future, (batch_size,), t + 1, horizon + 1)
-    relabel = jax.random.uniform(key_her, (batch_size,)) < future_p
-    goal = jnp.where(relabel[:, None], eps["achieved_goal"][ep, future_t], eps["desired_goal"][ep])
+    ep, t, future_t, relabel, goal = _draw(eps, key, batch_size, jnp.maximum(state.size, 1), future_p)
     next_ag = eps["achieved_goal"][ep, t + 1]
     batch = {
         "proprio": eps["proprio"][ep, t],

@@ -2,7 +2,8 @@
 
 `epoch` is ONE jit-able function: a `lax.scan` over cycles of (vectorised rollout of all
 parallel envs with exploration, buffer insert, normaliser update, n gradient updates,
-target update after every gradient step), then deterministic evaluation rollouts. Seeds are a `vmap` over
+target update after every gradient step), then deterministic evaluation rollouts. Both
+rollouts are `acting.rollout` with `acting.make_policy`. Seeds are a `vmap` over
 `init`/`epoch` (see `make_seeded`). Python only runs the outer loop.
 """
 
@@ -15,7 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from bidal_jax import normalizer, replay
+from bidal_jax import acting, normalizer, replay
 from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
 from bidal_jax.losses import make_losses
 from bidal_jax.networks import make_networks
@@ -33,6 +34,7 @@ class TrainState:
     goal_norm: normalizer.NormalizerState
     buffer: replay.ReplayState
     key: jax.Array
+    eval_key: jax.Array  # the key of the latest evaluation (acting.evaluate reproduces it)
     env_steps: jax.Array
     updates: jax.Array
     epoch: jax.Array
@@ -68,40 +70,16 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     def normalize_goal(ts, x):
         return normalizer.normalize(ts.goal_norm, x, config.clip_obs)
 
-    def policy(ts, obs):
-        image = obs["image"] if agent.uses_image else None
-        phi = networks.encode(ts.params.get("encoder"), image, normalize_proprio(ts, obs["proprio"]))
-        return networks.actor(ts.params["actor"], phi, normalize_goal(ts, obs["desired_goal"]))
+    def policy(ts: TrainState, explore: bool) -> acting.Policy:
+        return acting.make_policy(networks, agent, config, acting.acting_params(ts), explore)
 
-    def start_states(key, n_envs: int, explore: bool):
-        """n_envs initial states: from `env.reset`, but in training a fraction
-        `exploration_starts` from `env.exploration_reset` (e.g. the cube already held)."""
-        if not (explore and config.exploration_starts > 0):
-            return jax.vmap(env.reset)(jax.random.split(key, n_envs))
-        key_reset, key_eased, key_pick = jax.random.split(key, 3)
-        state = jax.vmap(env.reset)(jax.random.split(key_reset, n_envs))
-        eased = jax.vmap(env.exploration_reset)(jax.random.split(key_eased, n_envs))
-        pick = jax.random.uniform(key_pick, (n_envs,)) < config.exploration_starts
-        return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
-
-    def rollout(ts, key, n_envs: int, explore: bool):
-        """n_envs full episodes; returns (episodes, success at the last step)."""
-        key_reset, key_steps = jax.random.split(key)
-        state = start_states(key_reset, n_envs, explore)
-
-        def step(state, key):
-            obs = state.obs
-            action = policy(ts, obs)
-            if explore:
-                key_noise, key_random, key_pick = jax.random.split(key, 3)
-                action = jnp.clip(action + config.noise_eps * jax.random.normal(key_noise, action.shape), -1.0, 1.0)
-                random_action = jax.random.uniform(key_random, action.shape, minval=-1.0, maxval=1.0)
-                pick = jax.random.uniform(key_pick, (n_envs, 1)) < config.random_eps
-                action = jnp.where(pick, random_action, action)
-            next_state = jax.vmap(env.step)(state, action)
-            return next_state, (obs, action)
-
-        final, (obs, actions) = jax.lax.scan(step, state, jax.random.split(key_steps, horizon))
+    def collect(ts: TrainState, key: jax.Array):
+        """One exploring episode in each of `num_envs` envs, as replay episodes; train success."""
+        key_start, key_steps = jax.random.split(key)
+        states = acting.start_states(env, key_start, config.num_envs, config.exploration_starts)
+        final, (obs, actions) = acting.rollout(
+            env, policy(ts, explore=True), key_steps, states=states, record=lambda s, a, _: (s.obs, a)
+        )
 
         def with_final(x, last):  # [T, N, ...] + [N, ...] -> [N, T+1, ...]
             return jnp.swapaxes(jnp.concatenate([x, last[None]]), 0, 1)
@@ -136,6 +114,7 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
             goal_norm=normalizer.init(spec.goal_size),
             buffer=replay.init(config.buffer_episodes, example_episode),
             key=key_state,
+            eval_key=jax.random.split(key_state)[1],  # replaced by each epoch's evaluation key
             env_steps=jnp.zeros((), jnp.int32),
             updates=jnp.zeros((), jnp.int32),
             epoch=jnp.zeros((), jnp.int32),
@@ -166,13 +145,15 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
         return ts, {**aux, **actor_aux}
 
     def cycle(ts: TrainState, _):
-        key, key_rollout, key_updates = jax.random.split(ts.key, 3)
-        episodes, train_success = rollout(ts, key_rollout, config.num_envs, explore=True)
+        key, key_rollout, key_updates, key_goals = jax.random.split(ts.key, 4)
+        episodes, train_success = collect(ts, key_rollout)
+        # the goal normaliser sees the goals the critic will see: desired and HER-relabelled
+        goals = replay.her_goals(episodes, key_goals, config.num_envs * horizon, future_p)
         ts = ts.replace(
             key=key,
             buffer=replay.insert(ts.buffer, episodes),
             proprio_norm=normalizer.update(ts.proprio_norm, episodes["proprio"]),
-            goal_norm=normalizer.update(ts.goal_norm, episodes["achieved_goal"]),
+            goal_norm=normalizer.update(ts.goal_norm, goals),
             env_steps=ts.env_steps + config.num_envs * horizon,
         )
         ts, metrics = jax.lax.scan(update, ts, jax.random.split(key_updates, config.updates_per_cycle))
@@ -181,8 +162,8 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
         ts, metrics = jax.lax.scan(cycle, ts, None, length=config.cycles_per_epoch)
         key, key_eval = jax.random.split(ts.key)
-        _, eval_success = rollout(ts, key_eval, config.eval_envs, explore=False)
-        ts = ts.replace(key=key, epoch=ts.epoch + 1)
+        eval_success = acting.evaluate(env, policy(ts, explore=False), key_eval, config.eval_envs).mean()
+        ts = ts.replace(key=key, eval_key=key_eval, epoch=ts.epoch + 1)
         metrics = {**jax.tree.map(jnp.mean, metrics), "eval_success": eval_success, "env_steps": ts.env_steps}
         return ts, metrics
 

@@ -7,12 +7,43 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.metadata
+import io
 import os
+import re
+import sys
 from typing import Any
 
-from envs_mjx.base import Env, ObservationSpec, State
+
+def _import_without(module: str, noise: re.Pattern) -> None:
+    """Import `module`, dropping the lines it prints to stdout that fully match `noise`; any
+    other output passes through unchanged, also when the import fails."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(captured):
+            importlib.import_module(module)
+    finally:
+        lines = captured.getvalue().splitlines(keepends=True)
+        sys.stdout.write("".join(line for line in lines if not noise.fullmatch(line.rstrip("\n"))))
+
+
+# MuJoCo picks its OpenGL backend once, on import, from MUJOCO_GL; its default (GLFW) needs a
+# display. On a headless Linux machine default to EGL, so that offscreen rendering
+# (envs_mjx.gym's render) works; an explicit MUJOCO_GL, or mujoco imported earlier, wins.
+_HEADLESS = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+if _HEADLESS and "mujoco" not in sys.modules:
+    os.environ.setdefault("MUJOCO_GL", "egl")
+
+# mujoco.mjx tries its optional Warp backend on import and prints "Failed to import warp: No
+# module named 'warp'" and the same for mujoco_warp when Warp is absent, which is expected:
+# these envs run on MJX's JAX backend. Exactly those two lines are dropped.
+_WARP_ABSENT = re.compile(r"Failed to import (warp|mujoco_warp): No module named 'warp'")
+if "mujoco.mjx" not in sys.modules:
+    _import_without("mujoco.mjx", _WARP_ABSENT)
+
+from envs_mjx.base import Env, ObservationSpec, State  # noqa: E402  (after the quiet mjx import)
 
 # XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
 # before the first computation. With its default fusion emitters XLA:CPU compiles MJX
@@ -35,7 +66,7 @@ _REGISTRY: dict[str, str] = {
     "ur5_reach": "envs_mjx.ur5_reach:UR5Reach",
     "nicol_slide": "envs_mjx.nicol:NicolSlide",
     "nicol_lift": "envs_mjx.nicol:NicolLift",
-    "nicol_lift_reduced": "envs_mjx.nicol:make_reduced_lift",
+    "nicol_lift_reduced": "envs_mjx.nicol:NicolLiftReduced",
 }
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
-import os
+import importlib.resources
 from typing import Any
 
 import chex
@@ -27,7 +27,9 @@ from mujoco import mjx
 
 from envs_mjx.camera import Camera
 
-ASSETS_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "assets")
+# the top-level assets/ folder, installed as the package `envs_mjx.assets` (pyproject.toml), so
+# that editable installs, wheels and `pip install .` all find the models from any directory
+ASSETS_DIR = importlib.resources.files("envs_mjx.assets")
 CONTROL_PERIOD = 0.04  # seconds, 25 Hz (TASKS.md)
 IMAGE_SHAPE = (42, 42, 1)  # grayscale, paper Table I
 
@@ -69,6 +71,13 @@ class ObservationSpec:
             start += size
         raise KeyError(f"unknown proprio segment {name!r}; segments are {self.segment_names}")
 
+    def without(self, drop: tuple[str, ...]) -> ObservationSpec:
+        """This spec with the proprio segments named in `drop` removed (e.g. reduced lift)."""
+        unknown = sorted(set(drop) - set(self.segment_names))
+        if unknown:
+            raise ValueError(f"cannot drop unknown segments {unknown}; segments are {self.segment_names}")
+        return dataclasses.replace(self, proprio_segments=tuple(s for s in self.proprio_segments if s[0] not in drop))
+
     def shapes(self) -> dict[str, tuple[tuple[int, ...], Any]]:
         """Shape and dtype of every observation entry."""
         return {
@@ -80,8 +89,9 @@ class ObservationSpec:
 
 
 def load_model(filename: str) -> mujoco.MjModel:
-    """Load an MJCF model from `assets/`."""
-    return mujoco.MjModel.from_xml_path(os.path.join(ASSETS_DIR, filename))
+    """Load an MJCF model from `assets/` (the installed package `envs_mjx.assets`)."""
+    with importlib.resources.as_file(ASSETS_DIR / filename) as path:
+        return mujoco.MjModel.from_xml_path(str(path))
 
 
 def sparse_reward(achieved_goal: jax.Array, desired_goal: jax.Array, epsilon: float) -> jax.Array:
@@ -140,6 +150,7 @@ class Env(abc.ABC):
         self.action_size = action_size
         self.observation_spec = observation_spec
         self.render = render
+        self.camera_name = camera_name
         self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0])
 
     # ----- hooks for subclasses -------------------------------------------------------

@@ -33,7 +33,7 @@ front of the hand's rest position.
   the cube's start.
   Its `exploration_reset` starts with the cube already held in the resting hand (the
   HER paper's pick-and-place aid; the trainer's `exploration_starts` sets how often).
-- nicol_lift_reduced (`make_reduced_lift`): lift without obj_rot, obj_velp, obj_velr and
+- nicol_lift_reduced (`NicolLiftReduced`): lift without obj_rot, obj_velp, obj_velr and
   obj_rel_pos (D = 28), for the transfer experiment (paper Sec. IV-C).
 """
 
@@ -49,7 +49,6 @@ import numpy as np
 from mujoco import mjx
 
 from envs_mjx.base import Env, ObservationSpec, load_model
-from envs_mjx.wrappers import ReducedProprio
 
 PROPRIO_SEGMENTS = (
     ("ee_pos", 3),
@@ -314,6 +313,14 @@ class NicolLift(NicolEnv):
         return jnp.concatenate([xy, z[None]])
 
 
-def make_reduced_lift(render: bool = True) -> ReducedProprio:
-    """nicol_lift without obj_rot, obj_velp, obj_velr and obj_rel_pos (D = 28), paper Sec. IV-C."""
-    return ReducedProprio(NicolLift(render=render), drop=REDUCED_DROP)
+class NicolLiftReduced(NicolLift):
+    """nicol_lift without obj_rot, obj_velp, obj_velr and obj_rel_pos (D = 28), paper Sec. IV-C.
+
+    The same task and step; only the observation spec differs, and observations are built
+    from the spec's segment names, so the dropped segments are never observed."""
+
+    name = "nicol_lift_reduced"
+
+    def __init__(self, render: bool = True):
+        super().__init__(render=render)
+        self.observation_spec = self.observation_spec.without(REDUCED_DROP)

@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 import envs_mjx
+from bidal_jax import acting
 from bidal_jax.config import NetworkConfig, TrainConfig, agent_spec, env_preset
 from bidal_jax.train import make_seeded, make_train
 
@@ -44,14 +45,7 @@ def env_steps_per_second(name: str, num_envs: int, render: bool, steps: int, rep
 
     @jax.jit
     def run(key):
-        key_reset, key_act = jax.random.split(key)
-        state = jax.vmap(env.reset)(jax.random.split(key_reset, num_envs))
-
-        def body(state, k):
-            action = jax.random.uniform(k, (num_envs, env.action_size), minval=-1.0, maxval=1.0)
-            return jax.vmap(env.step)(state, action), ()
-
-        state, _ = jax.lax.scan(body, state, jax.random.split(key_act, steps))
+        state, _ = acting.rollout(env, acting.random_policy(env.action_size), key, num_envs, steps=steps)
         return state.obs["proprio"].sum() + state.obs["image"].sum()
 
     key = jax.random.PRNGKey(0)

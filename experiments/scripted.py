@@ -19,6 +19,7 @@ import argparse
 import jax
 import jax.numpy as jnp
 
+from bidal_jax.acting import Policy, evaluate
 from envs_mjx.base import Env, ObservationSpec, State
 from envs_mjx.nicol import MAX_MOVE, NicolLift, NicolSlide
 
@@ -77,24 +78,16 @@ def grasp_policy(obs: dict[str, jax.Array], spec: ObservationSpec) -> jax.Array:
     return _action(move, fingers, thumb)
 
 
-def run_episodes(env: Env, policy, states: State) -> jax.Array:
-    """Success (at the last step, as in the env) of `policy` from each of the batched
-    initial `states`. Apart from the states it depends on the env's step only, so one
+def scripted_policy(spec: ObservationSpec) -> Policy:
+    """`grasp_policy` as a batched policy for `bidal_jax.acting.rollout`."""
+    return lambda obs, key: jax.vmap(lambda o: grasp_policy(o, spec))(obs)
+
+
+def run_episodes(env: Env, states: State) -> jax.Array:
+    """Success (at the last step, as in the env) of the scripted controller from each of the
+    batched initial `states`. Apart from the states it depends on the env's step only, so one
     compiled program serves every task that shares a step (nicol_slide and nicol_lift)."""
-
-    def episode(state):
-        def body(state, _):
-            return env.step(state, policy(state.obs, env.observation_spec)), None
-
-        state, _ = jax.lax.scan(body, state, None, length=env.episode_length)
-        return state.metrics["success"]
-
-    return jax.vmap(episode)(states)
-
-
-def evaluate(env: Env, policy, key: jax.Array, n_episodes: int) -> jax.Array:
-    """Success of `policy` over `n_episodes` episodes from `env.reset`."""
-    return run_episodes(env, policy, jax.vmap(env.reset)(jax.random.split(key, n_episodes)))
+    return evaluate(env, scripted_policy(env.observation_spec), jax.random.PRNGKey(0), states=states)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -109,7 +102,7 @@ def main(argv: list[str] | None = None) -> None:
         ("nicol_slide", NicolSlide(render=False), key_slide),
         ("nicol_lift", NicolLift(render=False), key_lift),
     ):
-        success = jax.jit(evaluate, static_argnums=(0, 1, 3))(env, grasp_policy, key, args.episodes)
+        success = jax.jit(evaluate, static_argnums=(0, 1, 3))(env, scripted_policy(env.observation_spec), key, args.episodes)
         print(f"{name}: scripted success {float(success.mean()):.2f} over {args.episodes} episodes")
 
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from bidal_jax import acting
 
-# nicol_lift_reduced is nicol_lift behind a proprio-dropping wrapper: test_nicol.py checks
-# it against nicol_lift instead of compiling the whole contract again.
+# nicol_lift_reduced is nicol_lift with proprio segments dropped: test_nicol.py checks it
+# against nicol_lift instead of compiling the whole contract again.
 ENV_NAMES = tuple(name for name in envs_mjx.names() if name != "nicol_lift_reduced")
 
 
@@ -28,13 +29,12 @@ def compiled(name):
     resets = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), N_ENVS))
 
     @jax.jit
-    def random_rollout(state, key):
-        def body(state, k):
-            action = jax.random.uniform(k, (N_ENVS, env.action_size), minval=-1.5, maxval=1.5)
-            state = jax.vmap(env.step)(state, action)
-            return state, (state.obs["proprio"], state.data.qpos, state.obs["achieved_goal"])
-
-        return jax.lax.scan(body, state, jax.random.split(key, N_STEPS))
+    def random_rollout(states, key):
+        # actions beyond [-1, 1] check the env's clipping
+        return acting.rollout(
+            env, acting.random_policy(env.action_size, scale=1.5), key, states=states, steps=N_STEPS,
+            record=lambda _, a, s: (s.obs["proprio"], s.data.qpos, s.obs["achieved_goal"]),
+        )
 
     return env, resets, random_rollout
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from bidal_jax import acting
 from envs_mjx import nicol
 from envs_mjx.nicol import NicolLift, NicolSlide
-from envs_mjx.wrappers import ReducedProprio
-from experiments.scripted import grasp_policy, run_episodes
+from experiments.scripted import run_episodes
 
 TASKS_SEGMENTS = (
     ("ee_pos", 3), ("ee_rot", 3), ("obj_pos", 3), ("obj_rot", 3), ("obj_rel_pos", 3),
@@ -58,6 +58,7 @@ def test_reduced_lift_keeps_exactly_the_28_named_features(lift, lift_resets):
     reduced = envs_mjx.make("nicol_lift_reduced", render=False)
     assert reduced.observation_spec.segment_names == REDUCED_NAMES
     assert reduced.observation_spec.proprio_size == 28
+    assert isinstance(reduced, envs_mjx.Env) and reduced.name == "nicol_lift_reduced"
     key = jax.random.PRNGKey(0)
     full = jax.tree.map(lambda x: x[0], lift_resets)
     small = jax.jit(reduced.reset)(jax.random.split(key, N_RESETS)[0])
@@ -67,9 +68,9 @@ def test_reduced_lift_keeps_exactly_the_28_named_features(lift, lift_resets):
     np.testing.assert_array_equal(np.asarray(small.obs["desired_goal"]), np.asarray(full.obs["desired_goal"]))
 
 
-def test_reduced_proprio_rejects_unknown_segment_names(lift):
+def test_dropping_unknown_segment_names_is_refused(lift):
     with pytest.raises(ValueError, match="obj_colour"):
-        ReducedProprio(lift, drop=("obj_colour",))
+        lift.observation_spec.without(("obj_colour",))
 
 
 def test_cube_starts_and_lift_goals_follow_the_contract(lift, lift_resets):
@@ -101,18 +102,13 @@ def test_hand_tracks_random_cartesian_commands_within_a_centimetre(lift):
     """After every control period the hand is within 1 cm of its commanded position, and the
     arm joints stay inside their limits."""
 
-    def run(key):
-        k0, k1 = jax.random.split(key)
+    def record(_, action, state):
+        target = state.data.mocap_pos[:, lift._target_mocap]
+        error = jnp.linalg.norm(state.data.xpos[:, lift._hand] - target, axis=-1)
+        return error, state.data.qpos[:, lift._q_adr[:6]]
 
-        def body(state, k):
-            state = lift.step(state, jax.random.uniform(k, (7,), minval=-1.0, maxval=1.0))
-            target = state.data.mocap_pos[lift._target_mocap]
-            error = jnp.linalg.norm(state.data.xpos[lift._hand] - target)
-            return state, (error, state.data.qpos[lift._q_adr[:6]])
-
-        return jax.lax.scan(body, lift.reset(k0), jax.random.split(k1, 50))[1]
-
-    error, q = jax.jit(jax.vmap(run))(jax.random.split(jax.random.PRNGKey(2), 16))
+    run = jax.jit(lambda key: acting.rollout(lift, acting.random_policy(7), key, 16, record=record)[1])
+    error, q = run(jax.random.PRNGKey(2))
     error, q = np.asarray(error), np.asarray(q)
     print(f"hand tracking error after one period: mean {1000 * error.mean():.1f} mm, max {1000 * error.max():.1f} mm")
     assert error.max() < 0.01
@@ -152,7 +148,7 @@ def test_scripted_grasp_controller_solves_the_task(task, threshold, slide, lift,
     env, resets = {"slide": (slide, slide_resets), "lift": (lift, lift_resets)}[task]
     # the two tasks share their step, so the second compile is a persistent-cache hit
     first = jax.tree.map(lambda x: x[:N_EPISODES], resets)
-    success = jax.jit(run_episodes, static_argnums=(0, 1))(env, grasp_policy, first)
+    success = jax.jit(run_episodes, static_argnums=0)(env, first)
     rate = float(np.asarray(success).mean())
     print(f"nicol_{task}: scripted success {rate:.2f} over {N_EPISODES} episodes")
     assert rate >= threshold

@@ -57,3 +57,16 @@ def test_her_goals_are_later_achieved_goals_of_the_same_episode_with_recomputed_
     assert (np.asarray(batch["reward"])[future_t == t + 1] == 0).all()
     # transitions pair s_t with s_{t+1}
     np.testing.assert_array_equal(np.asarray(batch["next_proprio"])[:, 1], t + 1)
+
+
+def test_her_goals_are_the_desired_and_future_achieved_goals_the_critic_sees():
+    episodes = _episodes(3, 10)
+    key = jax.random.PRNGKey(3)
+    desired = np.asarray(replay.her_goals(episodes, key, 64, future_p=0.0))
+    np.testing.assert_array_equal(desired, np.full((64, G), -7.0))
+    future = np.asarray(replay.her_goals(episodes, key, 256, future_p=1.0))
+    assert set(future[:, 0]) <= {10.0, 11.0, 12.0}  # achieved goals of the three episodes
+    assert future[:, 1].min() >= 1 and future[:, 1].max() == T  # of a later step t' in [t+1, T]
+    mixed = np.asarray(replay.her_goals(episodes, key, 1000, future_p=0.8))
+    share = (mixed[:, 0] != -7.0).mean()
+    assert 0.75 < share < 0.85

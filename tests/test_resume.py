@@ -14,7 +14,8 @@ import jax
 import numpy as np
 import pytest
 
-from bidal_jax import checkpoint
+import envs_mjx
+from bidal_jax import checkpoint, config as config_lib, loop
 from experiments import run
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -35,8 +36,9 @@ def metric_rows(run_dir) -> list[dict[str, str]]:
 def restored_state(run_dir):
     """The whole TrainState of the run's latest checkpoint, and its epoch."""
     saved = checkpoint.read_config(os.path.join(run_dir, "checkpoints"))
-    run_cfg, train_cfg, net = run.configs_from_dict(saved, str(run_dir))
-    _, state, step = run.build(dataclasses.replace(run_cfg, run_dir=str(run_dir)), train_cfg, net, resume=True)
+    run_cfg, train_cfg, net = config_lib.from_dict(saved, str(run_dir))
+    env = envs_mjx.make(run_cfg.env, render=False)
+    state, step = loop.restore_state(env, dataclasses.replace(run_cfg, run_dir=str(run_dir)), train_cfg, net)
     return state, step
 
 

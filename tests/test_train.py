@@ -43,6 +43,9 @@ def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(age
     assert metrics["eval_success"].shape == (2,)
     assert np.asarray(state.env_steps).tolist() == [3 * 2 * 4 * 50] * 2
     assert np.asarray(state.buffer.size).tolist() == [8, 8]
+    # both normalisers saw every transition of every rollout (goals: desired and HER-relabelled)
+    assert np.asarray(state.goal_norm.count).tolist() == [3 * 2 * 4 * 50] * 2
+    assert np.asarray(state.proprio_norm.count).tolist() == [3 * 2 * 4 * 51] * 2
     for key in ("critic_loss", "actor_loss", "q", "train_success"):
         assert np.isfinite(np.asarray(metrics[key])).all(), key
     if spec.bidal:

@@ -9,6 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from bidal_jax import acting
 from envs_mjx import ur5_reach
 from envs_mjx.ur5_reach import UR5Reach, forward_kinematics
 
@@ -32,12 +33,9 @@ def resets(env):
 def rollout(env):
     """Jitted (state batch, actions [N_STEPS, N_ENVS, 3]) -> qpos trajectory [N_STEPS, N_ENVS, 3]."""
 
-    def run(state, actions):
-        def body(state, action):
-            state = jax.vmap(env.step)(state, action)
-            return state, state.data.qpos
-
-        return jax.lax.scan(body, state, actions)[1]
+    def run(states, actions):
+        record = lambda _, a, s: s.data.qpos  # noqa: E731
+        return acting.rollout(env, acting.open_loop, jax.random.PRNGKey(0), states=states, inputs=actions, record=record)[1]
 
     return jax.jit(run)
 

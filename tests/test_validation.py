@@ -14,8 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import bidal_jax.train
-from bidal_jax import checkpoint, validate
+import envs_mjx
+from bidal_jax import checkpoint, config as config_lib, loop, validate
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from experiments import run
 
@@ -89,6 +89,7 @@ BAD_COMMAND_LINES = {
     "zero checkpoint interval": (["--checkpoint-every", "0"], ["--checkpoint-every 0", "positive integer"]),
     "resume and overwrite": (["--resume", "--overwrite"], ["--resume and --overwrite"]),
     "not an integer (argparse)": (["--num-envs", "four"], ["--num-envs", "'four'"]),
+    "state larger than the device's memory": (["--seeds", "100000000"], ["--seeds 100000000", "GiB", "fewer seeds"]),
 }
 
 
@@ -215,18 +216,18 @@ def test_resume_of_a_missing_run_dir_is_refused(tmp_path, capsys):
 
 def test_divergence_names_epoch_quantity_and_seed():
     metrics = {"actor_loss": np.array([0.1, 0.2]), "critic_loss": np.array([0.3, np.nan])}
-    assert run.divergence(metrics, {}) == "critic_loss is nan (seed 1)"
+    assert loop.divergence(metrics, {}) == "critic_loss is nan (seed 1)"
     flags = {"params/actor": np.array([True, True]), "params/critic": np.array([False, True])}
-    assert run.divergence({"critic_loss": np.array([0.3, 0.1])}, flags) == "parameters params/critic are not finite (seed 0)"
-    assert run.divergence({"critic_loss": np.array([0.3, 0.1])}, {"params/actor": np.array([True, True])}) is None
+    assert loop.divergence({"critic_loss": np.array([0.3, 0.1])}, flags) == "parameters params/critic are not finite (seed 0)"
+    assert loop.divergence({"critic_loss": np.array([0.3, 0.1])}, {"params/actor": np.array([True, True])}) is None
 
 
 def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tmp_path, monkeypatch, capsys):
-    real_make_seeded = bidal_jax.train.make_seeded
+    real_build = loop.build
 
-    def poisoning_make_seeded(init, epoch):
+    def poisoning_build(*args, **kwargs):
         """The real program, but the 3rd epoch returns a NaN in the critic."""
-        init, epoch = real_make_seeded(init, epoch)
+        epoch, state, step = real_build(*args, **kwargs)
         calls = []
 
         def poisoned(state):
@@ -237,9 +238,9 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
                 state = state.replace(params={**state.params, "critic": critic})
             return state, metrics
 
-        return init, poisoned
+        return poisoned, state, step
 
-    monkeypatch.setattr(bidal_jax.train, "make_seeded", poisoning_make_seeded)
+    monkeypatch.setattr(loop, "build", poisoning_build)
     run_dir = tmp_path / "run"
     ckpt_dir = run_dir / "checkpoints"
     argv = [*TINY, "--epochs", "5", "--checkpoint-every", "2", "--run-dir", str(run_dir)]
@@ -251,7 +252,8 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
     ]
     assert checkpoint.latest_step(ckpt_dir) == 2
     saved = checkpoint.read_config(ckpt_dir)
-    run_cfg, train_cfg, net = run.configs_from_dict(saved, "test")
-    _, state, step = run.build(dataclasses.replace(run_cfg, run_dir=str(run_dir)), train_cfg, net, resume=True)
+    run_cfg, train_cfg, net = config_lib.from_dict(saved, "test")
+    env = envs_mjx.make(run_cfg.env, render=False)
+    state, step = loop.restore_state(env, dataclasses.replace(run_cfg, run_dir=str(run_dir)), train_cfg, net)
     assert step == 2
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(state.params))

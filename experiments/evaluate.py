@@ -1,0 +1,169 @@
+"""Evaluate a trained run: `python -m experiments.evaluate --run-dir runs/ur5 [--checkpoint N|best]`.
+
+Restores only what acting needs (`bidal_jax.acting.load_policy`: parameters and
+normalisers; the replay buffer is never read), runs `--episodes` deterministic episodes
+per seed and prints each seed's success with a 95 % Wilson interval, and the mean over
+seeds with a 95 % Student-t interval over the seeds (over the episodes when there is one
+seed). By default the episodes are drawn from the checkpoint's own evaluation key, so with
+`--episodes` equal to the run's `eval_envs` the printed success is the one the run logged
+for that epoch; `--seed S` draws other episodes.
+
+`--video out.mp4` also renders `--video-episodes` episodes of seed 0 with MuJoCo's own
+renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view.
+
+Exit codes: 0 done; 2 bad input (one `error: ...` line).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display; read when mujoco is imported
+
+import jax
+import numpy as np
+
+import envs_mjx
+from bidal_jax import acting
+from bidal_jax.checkpoint import CheckpointError
+
+EXIT_BAD_INPUT = 2
+Z95 = 1.959963984540054
+
+
+def wilson_interval(successes: int, n: int) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial success rate."""
+    p = successes / n
+    centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
+    half = Z95 * math.sqrt(p * (1 - p) / n + Z95**2 / (4 * n * n)) / (1 + Z95**2 / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
+    """(mean, low, high) of the seeds' success rates [S, N]: Student-t over seeds, or Wilson for one seed."""
+    rates = success.mean(axis=1)
+    if len(rates) == 1:
+        return (float(rates[0]), *wilson_interval(int(success.sum()), success.size))
+    from scipy import stats
+
+    half = stats.t.ppf(0.975, len(rates) - 1) * rates.std(ddof=1) / math.sqrt(len(rates))
+    return float(rates.mean()), float(rates.mean() - half), float(rates.mean() + half)
+
+
+def evaluate_seeds(env, trained: acting.TrainedPolicy, keys: jax.Array, episodes: int) -> np.ndarray:
+    """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training."""
+
+    def one(params, key):
+        policy = acting.make_policy(trained.networks, trained.agent, trained.train, params)
+        return acting.evaluate(env, policy, key, episodes)
+
+    return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys))
+
+
+def render_video(env, trained: acting.TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
+                 quiet: bool = False) -> int:
+    """Write `episodes` episodes of seed 0 to `path`: MuJoCo's render (width × height) beside the
+    agent's 42×42 view scaled to the same height. Returns the number of frames written."""
+    import imageio.v2 as imageio
+    import mujoco
+    from tqdm import tqdm
+
+    width, height = size
+    policy = trained.policy(0)
+    reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
+    act = jax.jit(policy)
+    model, data = env.mj_model, mujoco.MjData(env.mj_model)
+    renderer = mujoco.Renderer(model, height, width)
+    scale = max(1, height // env.observation_spec.image_shape[0])
+    frames = 0
+
+    def frame(state) -> np.ndarray:
+        for name in ("qpos", "qvel", "mocap_pos", "mocap_quat"):
+            getattr(data, name)[:] = np.asarray(getattr(state.data, name)[0])
+        mujoco.mj_forward(model, data)
+        renderer.update_scene(data, camera=env.camera_name)
+        view = np.asarray(state.obs["image"][0]).repeat(scale, 0).repeat(scale, 1)
+        view = np.pad(np.repeat(view, 3, axis=2), ((0, height - view.shape[0]), (0, 0), (0, 0)))
+        return np.concatenate([renderer.render(), view], axis=1)
+
+    with imageio.get_writer(path, fps=round(1 / 0.04), macro_block_size=1) as writer:
+        keys = jax.random.split(key, episodes)
+        for i in tqdm(range(episodes), desc="video", unit="episode", disable=quiet):
+            state = reset(keys[i][None])
+            writer.append_data(frame(state))
+            frames += 1
+            for _ in range(env.episode_length):
+                state = step(state, act(state.obs, None))
+                writer.append_data(frame(state))
+                frames += 1
+    renderer.close()
+    return frames
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m experiments.evaluate", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--run-dir", required=True, help="the run's directory (with checkpoints/ and config.json)")
+    parser.add_argument("--checkpoint", default=None, help="a checkpoint step, or 'best' (default: the latest)")
+    parser.add_argument("--episodes", type=int, default=100, help="episodes per seed")
+    parser.add_argument("--seed", type=int, default=None, help="draw episodes from this seed (default: the checkpoint's evaluation key)")
+    parser.add_argument("--video", default="", help="also write a video of seed 0's episodes to this .mp4")
+    parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video")
+    parser.add_argument("--video-size", default="320x240", help="MuJoCo render size WIDTHxHEIGHT (at least 320x240)")
+    parser.add_argument("--json", default="", help="also write the results to this JSON file")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+def _video_size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--video-size {text!r}: must be WIDTHxHEIGHT, e.g. 320x240") from None
+    if width < 320 or height < 240:
+        raise ValueError(f"--video-size {text}: must be at least 320x240")
+    return width, height
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.episodes < 1 or args.video_episodes < 1:
+            raise ValueError(f"--episodes {args.episodes} / --video-episodes {args.video_episodes}: must be positive integers")
+        if args.video and not args.video.endswith(".mp4"):
+            raise ValueError(f"--video {args.video}: must name an .mp4 file")
+        size = _video_size(args.video_size)
+        if not os.path.isdir(args.run_dir):
+            raise ValueError(f"--run-dir {args.run_dir}: no such directory")
+        trained = acting.load_policy(args.run_dir, args.checkpoint)
+    except (ValueError, CheckpointError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    env = envs_mjx.make(trained.run.env, render=trained.agent.uses_image)
+    if args.seed is None:
+        keys = trained.eval_key
+    else:
+        keys = jax.random.split(jax.random.PRNGKey(args.seed), trained.seeds)
+    success = evaluate_seeds(env, trained, keys, args.episodes)
+    mean, low, high = mean_interval(success)
+    print(f"{trained.run.env} / {trained.run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
+    for i, row in enumerate(success):
+        lo, hi = wilson_interval(int(row.sum()), row.size)
+        print(f"seed {i}: success {row.mean():.3f} (95 % interval {lo:.3f}-{hi:.3f})")
+    print(f"mean success {mean:.3f} (95 % interval {low:.3f}-{high:.3f}) over {trained.seeds} seed(s)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"checkpoint": trained.step, "episodes": args.episodes, "per_seed": success.mean(axis=1).tolist(),
+                       "mean": mean, "interval": [low, high]}, f, indent=2)
+    if args.video:
+        key = jax.random.PRNGKey(0 if args.seed is None else args.seed)
+        frames = render_video(env, trained, key, args.video_episodes, args.video, size, args.quiet)
+        print(f"video: {args.video} ({frames} frames)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
