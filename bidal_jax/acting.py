@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -32,8 +32,21 @@ from bidal_jax.config import AgentSpec, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
 
 Policy = Callable[[dict, Any], jax.Array]
-# what a rollout records per step: record(state, action, next_state) -> pytree
-Recorder = Callable[[Any, jax.Array, Any], Any]
+# what the agent observes of a state: observe(obs, key) -> obs (e.g. with sensor noise)
+Observer = Callable[[dict, jax.Array], dict]
+
+
+class Step(NamedTuple):
+    """One control period of a rollout, as `record` sees it."""
+
+    state: Any  # the batched env state before the step
+    obs: dict  # what the policy observed of it (state.obs, or `observe`'s noisy version)
+    action: jax.Array
+    next_state: Any
+
+
+# what a rollout records per step: record(step) -> pytree
+Recorder = Callable[[Step], Any]
 # the part of a training state that acting needs (all that `load_policy` reads)
 ACTING_FIELDS = ("params", "proprio_norm", "goal_norm", "eval_key")
 ACTING_NETWORKS = ("encoder", "actor")
@@ -111,7 +124,7 @@ def start_states(env, key: jax.Array, n_envs: int, exploration_starts: float = 0
     return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
 
 
-def _no_record(state, action, next_state) -> None:
+def _no_record(step: Step) -> None:
     return None
 
 
@@ -125,18 +138,22 @@ def rollout(
     steps: int | None = None,
     inputs: Any = None,
     record: Recorder = _no_record,
+    observe: Observer | None = None,
 ) -> tuple[Any, Any]:
     """Step `n_envs` vmapped envs with `policy` for `steps` control periods (default: one episode).
 
     Args:
       env: an environment with the functional API (`reset`, `step`, `episode_length`, ...).
       policy: `policy(obs, x) -> action` on batched observations (module docstring).
-      key: PRNG key: the start states (unless `states` is given) and each step's policy key.
+      key: PRNG key: the start states (unless `states` is given) and each step's key (the
+        policy's input unless `inputs` is given).
       n_envs: how many envs start from `env.reset`; omit when `states` is given.
       states: batched start states (e.g. `start_states(...)` with exploration starts).
       steps: control periods to run (default `env.episode_length`).
       inputs: per-step policy inputs [steps, ...] used instead of keys (e.g. open-loop actions).
-      record: `record(state, action, next_state)`, stacked over steps as the second output.
+      record: `record(step)` of each `Step`, stacked over steps as the second output.
+      observe: `observe(obs, key) -> obs`, what the policy sees of each state (e.g. noisy
+        proprio); its key is `fold_in(step key, 1)`, so the policy's own keys are unchanged.
 
     Returns:
       (final batched state, the stacked records [steps, ...]).
@@ -144,21 +161,25 @@ def rollout(
     key_reset, key_steps = jax.random.split(key)
     if states is None:
         states = start_states(env, key_reset, n_envs)
-    if inputs is None:
-        inputs = jax.random.split(key_steps, env.episode_length if steps is None else steps)
+    n_steps = jax.tree.leaves(inputs)[0].shape[0] if inputs is not None else steps or env.episode_length
+    keys = jax.random.split(key_steps, n_steps)
 
-    def body(state, x):
-        action = policy(state.obs, x)
+    def body(state, xs):
+        key, x = xs
+        obs = state.obs if observe is None else observe(state.obs, jax.random.fold_in(key, 1))
+        action = policy(obs, x)
         next_state = jax.vmap(env.step)(state, action)
-        return next_state, record(state, action, next_state)
+        return next_state, record(Step(state, obs, action, next_state))
 
-    return jax.lax.scan(body, states, inputs)
+    return jax.lax.scan(body, states, (keys, keys if inputs is None else inputs))
 
 
-def evaluate(env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None) -> jax.Array:
-    """Success (paper Eq. 6 at the episode's last step) of `policy` in each of `n_episodes`
-    episodes from `env.reset`, or from the given batched `states`; float32 [n_episodes]."""
-    final, _ = rollout(env, policy, key, n_episodes, states=states)
+def evaluate(
+    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None, observe: Observer | None = None
+) -> jax.Array:
+    """Success (paper Eq. 6 at the episode's last step, on the true state) of `policy` in each of
+    `n_episodes` episodes from `env.reset`, or from the given batched `states`; float32 [n_episodes]."""
+    final, _ = rollout(env, policy, key, n_episodes, states=states, observe=observe)
     return final.metrics["success"]
 
 

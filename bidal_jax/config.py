@@ -76,6 +76,16 @@ class TrainConfig:
         "already held, as HER's pick-and-place); evaluation always begins from reset. The paper uses "
         "none (0, the default); 0.5 is the labelled 'held starts' variant of lifting",
     )
+    obs_noise: float = doc(
+        0.0,
+        "κ of the observation noise s + κ·N(0, σ), σ the interquartile range of each feature over the clean "
+        "history (paper Eq. 9); it is data in the training state, so one compiled program serves every κ",
+    )
+    noise_segments: str = doc(
+        "",
+        "comma-separated proprio segments that get observation noise (the paper's: ee_pos,ee_rot,obj_pos); "
+        "empty: no noise code at all",
+    )
     her_k: int = doc(4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)")
     intrinsic_lambda: float = doc(0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)")
     forward_weight: float = doc(1.0, "weight of the forward-model loss (Eq. 3) in the representation loss")
@@ -97,6 +107,16 @@ class RunConfig:
     checkpoint_every: int = doc(5, "save a checkpoint every K epochs (and at the end)")
     run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>")
     target_success: float = doc(0.0, "stop early once the mean eval success reaches this (0: never)")
+    init_from: str = doc(
+        "",
+        "RUN_DIR or RUN_DIR:CHECKPOINT (step or best) whose parameters start this run (transfer, paper Sec. IV-C; "
+        "bidal_jax/transfer.py); empty: a fresh start. A resumed run continues its own checkpoint",
+    )
+    init_parts: str = doc(
+        "encoder,forward,inverse",
+        "comma-separated networks that --init-from restores, into the online and target networks (optimisers start "
+        "fresh); the encoder brings its normalisers, its proprio rows matched by segment name",
+    )
 
 
 def fields_help(cls: type) -> dict[str, str]:

@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import checkpoint, config as config_lib, validate
+from bidal_jax import checkpoint, config as config_lib, transfer, validate
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.validate import ConfigError, option
@@ -198,6 +198,8 @@ def prepare(
     env = make_env(configs[0].env, render=False)
     validate.check_env_support(configs[1], env)
     check_memory(state_bytes(env, *configs), device_memory(), configs[0].seeds)
+    if configs[0].init_from and not resume:  # a resumed run continues its own checkpoint
+        transfer.check(env, *configs, make_env=make_env)
     return configs
 
 
@@ -369,25 +371,37 @@ def restore_state(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfi
     return jax.device_put(state), step
 
 
-def build(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, resume: bool, log: Callable = _log):
+def build(
+    env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, resume: bool, log: Callable = _log,
+    initialize: Callable | None = None,
+):
     """(compiled epoch, state to start from, its epoch): a new state, or the latest checkpoint's; writes nothing.
 
+    `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
+    from another run for transfer); a resumed run continues its checkpoint as it is.
     Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
     """
     init, epoch, keys = _programs(env, run, train_cfg, net)
     start = time.time()
     log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s)) ...")
-    state, step = restore_state(env, run, train_cfg, net) if resume else (init(keys), 0)
+    if resume:
+        state, step = restore_state(env, run, train_cfg, net)
+    else:
+        state, step = init(keys), 0
+        if initialize is not None:
+            state = initialize(state)
     compiled = epoch.lower(state).compile()
     log(f"compiled in {time.time() - start:.1f} s")
     return compiled, state, step
 
 
 def train(
-    env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, *, quiet: bool = False, resume: bool = False
+    env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, *, quiet: bool = False, resume: bool = False,
+    initialize: Callable | None = None,
 ) -> dict[str, float]:
     """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`); returns
-    the last epoch's metrics row (empty when the run is already at `run.epochs`).
+    the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
+    edits a new run's initial state (see `build`).
 
     Raises CheckpointError (before writing anything) when the checkpoint cannot be
     restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
@@ -397,7 +411,7 @@ def train(
 
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     with StopSignals(ckpt_dir) as stop:
-        epoch, state, start_epoch = build(env, run, train_cfg, net, resume)
+        epoch, state, start_epoch = build(env, run, train_cfg, net, resume, initialize=initialize)
         os.makedirs(run.run_dir, exist_ok=True)
         cfg = config_lib.to_dict(run, train_cfg, net)
         _write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))

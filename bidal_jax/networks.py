@@ -79,6 +79,9 @@ class VisionBranch(nn.Module):
         return nn.elu(nn.Dense(self.features)(x))
 
 
+PROPRIO_LAYER = "proprio"  # the encoder's proprio branch: its kernel's rows are the proprio features
+
+
 class Encoder(nn.Module):
     """φ(s): the multimodal (or visual-only) encoder, paper Eq. 1."""
 
@@ -91,7 +94,7 @@ class Encoder(nn.Module):
         cfg = self.config
         parts = [VisionBranch(cfg.conv_channels, cfg.vision_features)(image)]
         if self.uses_proprio:
-            parts.append(nn.elu(nn.Dense(cfg.proprio_features)(proprio)))
+            parts.append(nn.elu(nn.Dense(cfg.proprio_features, name=PROPRIO_LAYER)(proprio)))
         x = nn.Dense(cfg.latent_size)(jnp.concatenate(parts, axis=-1))
         return jnp.tanh(nn.LayerNorm()(x))
 

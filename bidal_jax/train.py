@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from bidal_jax import acting, normalizer, replay
+from bidal_jax import acting, noise, normalizer, replay
 from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
 from bidal_jax.losses import make_losses
 from bidal_jax.networks import make_networks
@@ -35,6 +35,7 @@ class TrainState:
     buffer: replay.ReplayState
     key: jax.Array
     eval_key: jax.Array  # the key of the latest evaluation (acting.evaluate reproduces it)
+    noise: noise.NoiseState  # κ and σ of the observation noise (paper Eq. 9); F = 0 without noise
     env_steps: jax.Array
     updates: jax.Array
     epoch: jax.Array
@@ -60,6 +61,8 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     actor_opt = _optimizer(config.actor_lr, config.grad_clip)
     future_p = 1.0 - 1.0 / (1.0 + config.her_k)
     rep_keys = ("encoder", "critic", "forward", "inverse")
+    # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
+    noisy = noise.feature_indices(spec.proprio_segments, noise.parse_segments(config.noise_segments))
 
     def rep_params(params):
         return {k: v for k, v in params.items() if k in rep_keys}
@@ -73,25 +76,37 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     def policy(ts: TrainState, explore: bool) -> acting.Policy:
         return acting.make_policy(networks, agent, config, acting.acting_params(ts), explore)
 
+    def observer(ts: TrainState) -> acting.Observer | None:
+        """What the agent sees of an observation: with noise on the `noisy` features, if any."""
+        if not len(noisy):
+            return None
+        return lambda obs, key: noise.observe(ts.noise, noisy, obs, key)
+
     def collect(ts: TrainState, key: jax.Array):
-        """One exploring episode in each of `num_envs` envs, as replay episodes; train success."""
+        """One exploring episode in each of `num_envs` envs, as replay episodes (observations as
+        the agent saw them; with noise, also the clean noised features); train success."""
         key_start, key_steps = jax.random.split(key)
         states = acting.start_states(env, key_start, config.num_envs, config.exploration_starts)
-        final, (obs, actions) = acting.rollout(
-            env, policy(ts, explore=True), key_steps, states=states, record=lambda s, a, _: (s.obs, a)
+        observe = observer(ts)
+        final, (obs, actions, clean) = acting.rollout(
+            env, policy(ts, explore=True), key_steps, states=states, observe=observe,
+            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
         )
+        last = final.obs if observe is None else observe(final.obs, jax.random.fold_in(key_steps, 2))
 
         def with_final(x, last):  # [T, N, ...] + [N, ...] -> [N, T+1, ...]
             return jnp.swapaxes(jnp.concatenate([x, last[None]]), 0, 1)
 
         episodes = {
-            "proprio": with_final(obs["proprio"], final.obs["proprio"]),
-            "achieved_goal": with_final(obs["achieved_goal"], final.obs["achieved_goal"]),
+            "proprio": with_final(obs["proprio"], last["proprio"]),
+            "achieved_goal": with_final(obs["achieved_goal"], last["achieved_goal"]),
             "desired_goal": final.obs["desired_goal"],
             "action": jnp.swapaxes(actions, 0, 1),
         }
         if agent.uses_image:
-            episodes["image"] = with_final(obs["image"], final.obs["image"])
+            episodes["image"] = with_final(obs["image"], last["image"])
+        if len(noisy):
+            episodes["clean"] = with_final(clean, final.obs["proprio"][..., noisy])
         return episodes, final.metrics["success"].mean()
 
     example_episode = {
@@ -102,6 +117,8 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     }
     if agent.uses_image:
         example_episode["image"] = jnp.zeros((horizon + 1, *spec.image_shape), jnp.uint8)
+    if len(noisy):
+        example_episode["clean"] = jnp.zeros((horizon + 1, len(noisy)), jnp.float32)
 
     def init(key: jax.Array) -> TrainState:
         key_params, key_state = jax.random.split(key)
@@ -115,6 +132,7 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
             buffer=replay.init(config.buffer_episodes, example_episode),
             key=key_state,
             eval_key=jax.random.split(key_state)[1],  # replaced by each epoch's evaluation key
+            noise=noise.init(config.obs_noise, len(noisy)),
             env_steps=jnp.zeros((), jnp.int32),
             updates=jnp.zeros((), jnp.int32),
             epoch=jnp.zeros((), jnp.int32),
@@ -145,6 +163,8 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
         return ts, {**aux, **actor_aux}
 
     def cycle(ts: TrainState, _):
+        if len(noisy):  # σ from the clean history collected so far, before every rollout
+            ts = ts.replace(noise=noise.refresh(ts.noise, ts.buffer.episodes["clean"], ts.buffer.size))
         key, key_rollout, key_updates, key_goals = jax.random.split(ts.key, 4)
         episodes, train_success = collect(ts, key_rollout)
         # the goal normaliser sees the goals the critic will see: desired and HER-relabelled
@@ -162,7 +182,7 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
         ts, metrics = jax.lax.scan(cycle, ts, None, length=config.cycles_per_epoch)
         key, key_eval = jax.random.split(ts.key)
-        eval_success = acting.evaluate(env, policy(ts, explore=False), key_eval, config.eval_envs).mean()
+        eval_success = acting.evaluate(env, policy(ts, explore=False), key_eval, config.eval_envs, observe=observer(ts)).mean()
         ts = ts.replace(key=key, eval_key=key_eval, epoch=ts.epoch + 1)
         metrics = {**jax.tree.map(jnp.mean, metrics), "eval_success": eval_success, "env_steps": ts.env_steps}
         return ts, metrics

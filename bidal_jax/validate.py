@@ -46,6 +46,11 @@ def _anything(v: Any) -> bool:
     return True
 
 
+def _name_list(v: str) -> bool:
+    names = [name.strip() for name in v.split(",")]
+    return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
+
+
 # field -> (type, predicate, what is allowed)
 Rule = tuple[type, Callable[[Any], bool], str]
 _POS_INT: Rule = (int, _positive_int, "a positive integer")
@@ -62,6 +67,8 @@ RULES: dict[str, Rule] = {
     "checkpoint_every": _POS_INT,
     "run_dir": (str, _anything, "a path"),
     "target_success": _PROB,
+    "init_from": (str, _anything, "RUN_DIR or RUN_DIR:CHECKPOINT"),
+    "init_parts": (str, _name_list, "comma-separated network names without repeats, e.g. encoder,forward,inverse"),
     # train
     "num_envs": _POS_INT,
     "cycles_per_epoch": _POS_INT,
@@ -76,6 +83,8 @@ RULES: dict[str, Rule] = {
     "noise_eps": _NON_NEG,
     "random_eps": _PROB,
     "exploration_starts": _PROB,
+    "obs_noise": _NON_NEG,
+    "noise_segments": (str, _anything, "comma-separated proprio segment names"),
     "her_k": (int, _non_negative, "an integer >= 0"),
     "intrinsic_lambda": _NON_NEG,
     "forward_weight": _NON_NEG,
@@ -128,6 +137,8 @@ def check(
             f"--buffer-episodes {train.buffer_episodes}: must be a multiple of --num-envs {train.num_envs} "
             "(whole rollouts are written at once)"
         )
+    if train.obs_noise > 0 and not train.noise_segments.strip():
+        raise ConfigError(f"--obs-noise {train.obs_noise}: needs --noise-segments (e.g. ee_pos,ee_rot,obj_pos)")
     for name in ("num_envs", "eval_envs"):
         value = getattr(train, name)
         if value % device_count:
@@ -138,7 +149,15 @@ def check(
 
 
 def check_env_support(train: TrainConfig, env: Any) -> None:
-    """Raise `ConfigError` when `train` asks `env` for something it lacks (exploration starts)."""
+    """Raise `ConfigError` when `train` asks `env` for something it lacks (exploration starts,
+    the proprio segments that get noise)."""
+    names = [n.strip() for n in train.noise_segments.split(",") if n.strip()]
+    unknown = [n for n in names if n not in env.observation_spec.segment_names]
+    if unknown:
+        raise ConfigError(
+            f"{option('noise_segments')} {train.noise_segments}: env {env.name} has no segment {unknown[0]!r}; "
+            f"its segments are {', '.join(env.observation_spec.segment_names)}"
+        )
     if train.exploration_starts > 0 and not env.has_exploration_start:
         raise ConfigError(
             f"{option('exploration_starts')} {train.exploration_starts}: env {env.name} has no exploration start; "

@@ -34,8 +34,10 @@ camera, which in every task is the agent's camera.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-from typing import Any
+import math
+from typing import Any, Callable
 
 import gymnasium
 import jax
@@ -94,16 +96,61 @@ def autoreset(env: Any, done: jax.Array, state: State, key: jax.Array) -> tuple[
     return jax.tree.map(pick, fresh, state), key
 
 
-def batched_step(env: Any, image: bool, state: State, key: jax.Array, action: jax.Array):
-    """One step of every env with same-step autoreset: the jitted body of `VectorGoalEnv.step`.
+# The carried state crosses the jit boundary packed: every argument and result of a jitted call
+# costs microseconds of dispatch on the CPU and an MJX state has ~95 arrays, which cost more
+# than the physics of a small batch, so they travel as one [num_envs, k] buffer per dtype.
+@dataclasses.dataclass(frozen=True)
+class Packing:
+    """Where each leaf of a batched pytree lives: (dtype, first column, end column, per-env shape)."""
 
-    Returns (state, key) to carry, what the host reads every step (observation after any
-    reset, reward, success, truncation) and the ended episodes' last observation and
-    success, which the host reads only on steps that truncate.
+    treedef: Any
+    slots: tuple[tuple[str, int, int, tuple[int, ...]], ...]
+
+
+def packing_of(tree: Any) -> Packing:
+    """The packing of a batched pytree (arrays or shape structs with a leading env axis)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    ends: dict[str, int] = {}
+    slots = []
+    for leaf in leaves:
+        dtype, start = np.dtype(leaf.dtype).name, ends.get(np.dtype(leaf.dtype).name, 0)
+        ends[dtype] = start + math.prod(leaf.shape[1:])
+        slots.append((dtype, start, ends[dtype], tuple(leaf.shape[1:])))
+    return Packing(treedef, tuple(slots))
+
+
+def pack(tree: Any, packing: Packing) -> dict[str, jax.Array]:
+    """The leaves of batched `tree` as one [num_envs, k] buffer per dtype."""
+    columns: dict[str, list[jax.Array]] = {}
+    for leaf, (dtype, *_) in zip(jax.tree.leaves(tree), packing.slots):
+        columns.setdefault(dtype, []).append(leaf.reshape(leaf.shape[0], -1))
+    return {dtype: jnp.concatenate(parts, axis=1) for dtype, parts in columns.items()}
+
+
+def unpack(buffers: dict[str, Any], packing: Packing) -> Any:
+    """The pytree that `pack` packed into `buffers` (jax or numpy arrays)."""
+    n = next(iter(buffers.values())).shape[0]
+    leaves = [buffers[dtype][:, start:end].reshape((n, *shape)) for dtype, start, end, shape in packing.slots]
+    return jax.tree.unflatten(packing.treedef, leaves)
+
+
+def packed_reset(env: Any, num_envs: int, image: bool, packing: Packing, key: jax.Array):
+    """The jitted body of `VectorGoalEnv.reset`: packed states, key, observation and success."""
+    state, key = batched_reset(env, num_envs, key)
+    return (pack(state, packing), key), {"obs": goal_obs(state.obs, image), "is_success": state.metrics["success"] > 0}
+
+
+def packed_step(env: Any, image: bool, packing: Packing, buffers: dict[str, jax.Array], key: jax.Array,
+                action: jax.Array):
+    """The jitted body of `VectorGoalEnv.step`: every env steps, then same-step autoreset.
+
+    Returns the packed states and key to carry, what the host reads every step (observation
+    after any reset, reward, truncation, success) and what it reads only on steps that
+    truncate (the ended episodes' last observation and success).
     """
-    stepped = jax.vmap(env.step)(state, action)
+    stepped = jax.vmap(env.step)(unpack(buffers, packing), action)
     done = stepped.done
-    # all envs of a batch end together (same T, reset together), so this is one branch per batch
+    # every env of a batch ends on the same step (same T, reset together): one branch per batch
     state, key = jax.lax.cond(jnp.any(done), functools.partial(autoreset, env, done), lambda s, k: (s, k), stepped, key)
     host = {
         "obs": goal_obs(state.obs, image),
@@ -112,7 +159,34 @@ def batched_step(env: Any, image: bool, state: State, key: jax.Array, action: ja
         "is_success": state.metrics["success"] > 0,
     }
     final = {"obs": goal_obs(stepped.obs, image), "is_success": stepped.metrics["success"] > 0}
-    return (state, key), host, final
+    return (pack(state, packing), key), host, final
+
+
+@dataclasses.dataclass(frozen=True)
+class Batched:
+    """A task and its jitted batched functions (reset, step, reward) with the packing of its state."""
+
+    env: Any
+    packing: Packing
+    reset: Callable
+    step: Callable
+    reward: Callable
+
+
+@functools.cache
+def batched(name: str, num_envs: int, image: bool) -> Batched:
+    """The task `name` (render=image) and its jitted functions for `num_envs` envs, built once
+    per process and shared by every adapter of the same arguments (one compilation)."""
+    env = envs_mjx.make(name, render=image)
+    shapes, _ = jax.eval_shape(functools.partial(batched_reset, env, num_envs), jax.random.PRNGKey(0))
+    packing = packing_of(shapes)
+    return Batched(
+        env=env,
+        packing=packing,
+        reset=jax.jit(functools.partial(packed_reset, env, num_envs, image, packing)),
+        step=jax.jit(functools.partial(packed_step, env, image, packing)),
+        reward=jax.jit(env.compute_reward),
+    )
 
 
 def to_numpy(tree: Any) -> Any:
@@ -139,9 +213,9 @@ def per_env_obs(obs: dict[str, np.ndarray], mask: np.ndarray) -> np.ndarray:
 
 
 def mjx_to_mjdata(data: Any, mj_model: mujoco.MjModel, mj_data: mujoco.MjData) -> mujoco.MjData:
-    """Copy env 0 of batched MJX data (qpos, qvel, mocap) into `mj_data` and forward it."""
-    fields = jax.device_get((data.qpos[0], data.qvel[0], data.mocap_pos[0], data.mocap_quat[0]))
-    mj_data.qpos[:], mj_data.qvel[:], mj_data.mocap_pos[:], mj_data.mocap_quat[:] = fields
+    """Copy env 0 of batched MJX data (host arrays: qpos, qvel, mocap) into `mj_data` and forward it."""
+    mj_data.qpos[:], mj_data.qvel[:] = data.qpos[0], data.qvel[0]
+    mj_data.mocap_pos[:], mj_data.mocap_quat[:] = data.mocap_pos[0], data.mocap_quat[0]
     mujoco.mj_forward(mj_model, mj_data)
     return mj_data
 
@@ -164,16 +238,14 @@ class VectorGoalEnv(VectorEnv):
             raise ValueError(f"num_envs {num_envs!r}: must be an integer >= 1")
         if render_mode not in (None, *METADATA["render_modes"]):
             raise ValueError(f"render_mode {render_mode!r}: must be None or one of {METADATA['render_modes']}")
-        self.env = envs_mjx.make(name, render=image)
-        self.name, self.num_envs, self.image, self.render_mode = name, int(num_envs), image, render_mode
+        self.name, self.num_envs, self.image, self.render_mode = name, int(num_envs), bool(image), render_mode
+        self._batched = batched(self.name, self.num_envs, self.image)
+        self.env = self._batched.env
         self.single_observation_space = observation_space(self.env, image)
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.env.action_size,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
-        self._reset_fn = jax.jit(functools.partial(batched_reset, self.env, num_envs))
-        self._step_fn = jax.jit(functools.partial(batched_step, self.env, image))
-        self._reward_fn = jax.jit(self.env.compute_reward)
-        self._carry: tuple[State, jax.Array] | None = None
+        self._carry: tuple[dict[str, jax.Array], jax.Array] | None = None  # packed states, key
         self._renderer: tuple[mujoco.Renderer, mujoco.MjData] | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -181,11 +253,9 @@ class VectorGoalEnv(VectorEnv):
         if options:
             raise ValueError(f"reset options {sorted(options)}: this env takes no reset options")
         super().reset(seed=seed)
-        key = jax.random.PRNGKey(self.np_random.integers(2**32, dtype=np.uint32))
-        state, key = self._reset_fn(key)
-        self._carry = (state, key)
-        obs, success = to_numpy((goal_obs(state.obs, self.image), state.metrics["success"] > 0))
-        return obs, vector_info(success)
+        self._carry, host = self._batched.reset(jax.random.PRNGKey(self.np_random.integers(2**32, dtype=np.uint32)))
+        host = to_numpy(host)
+        return host["obs"], vector_info(host["is_success"])
 
     def step(self, actions: Any):
         """Step every env by `actions` ([num_envs, A], clipped to [-1, 1]); same-step autoreset."""
@@ -195,7 +265,7 @@ class VectorGoalEnv(VectorEnv):
         if actions.shape[:1] != (self.num_envs,):
             raise ValueError(f"actions have shape {actions.shape}; expected ({self.num_envs}, {self.env.action_size})")
         check_action(actions, self.env.action_size)
-        self._carry, host, final = self._step_fn(*self._carry, actions)
+        self._carry, host, final = self._batched.step(*self._carry, actions)
         host = to_numpy(host)
         truncated = host["truncated"]
         info = vector_info(host["is_success"])
@@ -210,7 +280,7 @@ class VectorGoalEnv(VectorEnv):
 
     def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any = None) -> np.ndarray:
         """The task's sparse reward for goals batched over leading axes (numpy in and out)."""
-        return np.asarray(self._reward_fn(np.asarray(achieved_goal, np.float32), np.asarray(desired_goal, np.float32)))
+        return np.asarray(self._batched.reward(np.asarray(achieved_goal, np.float32), np.asarray(desired_goal, np.float32)))
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         """(frame,): the first env drawn by `mujoco.Renderer`, uint8 [480, 640, 3]; None
@@ -223,7 +293,8 @@ class VectorGoalEnv(VectorEnv):
             mj_model = self.env.mj_model
             self._renderer = (mujoco.Renderer(mj_model, *RENDER_SIZE), mujoco.MjData(mj_model))
         renderer, mj_data = self._renderer
-        renderer.update_scene(mjx_to_mjdata(self._carry[0].data, self.env.mj_model, mj_data),
+        state = unpack(jax.device_get(self._carry[0]), self._batched.packing)
+        renderer.update_scene(mjx_to_mjdata(state.data, self.env.mj_model, mj_data),
                               camera=0 if self.env.mj_model.ncam else -1)
         return (renderer.render(),)
 

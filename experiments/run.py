@@ -30,7 +30,7 @@ import os
 import sys
 
 import envs_mjx
-from bidal_jax import config as config_lib, loop
+from bidal_jax import config as config_lib, loop, transfer
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import AGENTS, CONFIG_CLASSES, fields_help
 from bidal_jax.validate import ConfigError, option
@@ -111,8 +111,11 @@ def main(argv: list[str] | None = None) -> int:
         loop.delete_run_dir(run.run_dir)
     loop.enable_compilation_cache()
     env = envs_mjx.make(run.env, render=config_lib.agent_spec(run.agent).uses_image)
+    # a run with --init-from starts from another run's parameters (ignored on --resume)
+    segments = env.observation_spec.proprio_segments
+    initialize = transfer.make_initializer(run, segments, envs_mjx.make) if run.init_from else None
     try:
-        row = loop.train(env, run, train_cfg, net, quiet=args.quiet, resume=args.resume)
+        row = loop.train(env, run, train_cfg, net, quiet=args.quiet, resume=args.resume, initialize=initialize)
     except CheckpointError as err:
         return _error(err, EXIT_BAD_INPUT)
     except loop.Diverged as err:

@@ -33,7 +33,7 @@ def compiled(name):
         # actions beyond [-1, 1] check the env's clipping
         return acting.rollout(
             env, acting.random_policy(env.action_size, scale=1.5), key, states=states, steps=N_STEPS,
-            record=lambda _, a, s: (s.obs["proprio"], s.data.qpos, s.obs["achieved_goal"]),
+            record=lambda step: (step.next_state.obs["proprio"], step.next_state.data.qpos, step.next_state.obs["achieved_goal"]),
         )
 
     return env, resets, random_rollout

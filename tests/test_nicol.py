@@ -102,7 +102,8 @@ def test_hand_tracks_random_cartesian_commands_within_a_centimetre(lift):
     """After every control period the hand is within 1 cm of its commanded position, and the
     arm joints stay inside their limits."""
 
-    def record(_, action, state):
+    def record(step):
+        state = step.next_state
         target = state.data.mocap_pos[:, lift._target_mocap]
         error = jnp.linalg.norm(state.data.xpos[:, lift._hand] - target, axis=-1)
         return error, state.data.qpos[:, lift._q_adr[:6]]

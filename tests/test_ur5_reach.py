@@ -34,7 +34,7 @@ def rollout(env):
     """Jitted (state batch, actions [N_STEPS, N_ENVS, 3]) -> qpos trajectory [N_STEPS, N_ENVS, 3]."""
 
     def run(states, actions):
-        record = lambda _, a, s: s.data.qpos  # noqa: E731
+        record = lambda step: step.next_state.data.qpos  # noqa: E731
         return acting.rollout(env, acting.open_loop, jax.random.PRNGKey(0), states=states, inputs=actions, record=record)[1]
 
     return jax.jit(run)

@@ -1,0 +1,280 @@
+"""The transfer experiment (paper Sec. IV-C, Fig. 6): reduced lift learns from scratch and
+from the representation of a sliding run.
+
+    python -m experiments.transfer [--seeds 5] [--out results/transfer] [--source RUN_DIR]
+        [--source-epochs N] [--epochs N] [--held-starts] [any learner or network option of experiments.run]
+
+Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
+
+- `source/`: nicol_slide with its preset (`--source-epochs` epochs), unless `--source RUN_DIR`
+  names a finished one (`--source-checkpoint` picks a step or "best"; default the latest);
+- `transfer/`: nicol_lift_reduced whose encoder and forward and inverse models (`--init-parts`)
+  start from the source's (`bidal_jax/transfer.py`: seed i from the source's seed i, the proprio
+  rows matched by segment name, the normalisers carried along, optimisers fresh);
+- `scratch/`: the same run from a fresh start: same seeds, epochs and settings.
+
+Faithful to the paper by default: no held starts (`exploration_starts` 0 in both arms);
+`--held-starts` runs both arms with half of the training episodes starting with the cube held
+(0.5), a labelled variant written to results/transfer-held by default. Learner and network
+options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to all three runs.
+
+Then, from whatever runs have epochs, it writes `success.png` and `success.csv` (eval success
+against env steps per seed, mean ± std over seeds, both arms; `experiments/plot.py`) and
+`table.md` (env steps and wall time to 0.3 and 0.5 success, area under the curve, final
+success). Each run's metrics are its `metrics.csv`. The persistent compilation cache is not
+used: both arms' programs are identical, and the second would otherwise skip its compilation,
+which `wall_time` counts. The source's training time is not in the transfer arm's times.
+
+Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
+skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
+again. Runs are driven in-process through `bidal_jax.loop` (prepare, then train), in the order
+source, transfer, scratch, so that the transfer's checks run as early as they can.
+
+Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
+line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from typing import Any, Sequence
+
+import jax
+
+import envs_mjx
+from bidal_jax import checkpoint, config as config_lib, loop, transfer, validate
+from bidal_jax.checkpoint import CheckpointError
+from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
+from bidal_jax.validate import ConfigError, option
+from experiments import plot, run as run_cli
+
+PROG = "python -m experiments.transfer"
+SOURCE_ENV, TARGET_ENV, AGENT = "nicol_slide", "nicol_lift_reduced", "multimodal_bidal"
+HELD_STARTS = 0.5
+THRESHOLDS = (0.3, 0.5)
+# what passes through to every run: the learner and network options (the exploration starts are
+# --held-starts, the same in both arms) and the checkpoint interval
+PASS_THROUGH = frozenset(
+    {f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)} - {"exploration_starts"}
+) | {"checkpoint_every"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Arm:
+    """One run of the experiment: its name (source, transfer, scratch) and its config fields."""
+
+    name: str
+    given: dict[str, Any]
+
+    @property
+    def run_dir(self) -> str:
+        return self.given["run_dir"]
+
+    @property
+    def epochs(self) -> int:
+        return self.given["epochs"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG, description=__doc__.split("\n\n")[0], allow_abbrev=False,
+        epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
+        "and --checkpoint-every are passed to all three runs.",
+    )
+    parser.add_argument("--out", default=None, help="output folder (default results/transfer, or results/transfer-held "
+                        "with --held-starts)")
+    parser.add_argument("--source", default=None, metavar="RUN_DIR", help="a nicol_slide run to transfer from "
+                        "instead of training OUT/source")
+    parser.add_argument("--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' "
+                        "(default: the latest)")
+    parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source run (default: its preset)")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: the preset)")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds of every run (vmapped); the source needs at least as many")
+    parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
+    parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
+    parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
+                        "training episodes with the cube held (a labelled variant; the paper has none)")
+    parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def pass_through(argv: Sequence[str]) -> dict[str, Any]:
+    """The config fields of the options this command does not know itself, parsed as experiments.run
+    parses them; ConfigError for one that is not passed through."""
+    parser = run_cli.build_parser()
+    parser.prog = PROG
+    # unset options are None; flags (--quiet, --resume, ...) are False unless given
+    given = {k: v for k, v in vars(parser.parse_args(list(argv))).items() if v is not None and v is not False}
+    for name in sorted(set(given) - PASS_THROUGH):
+        hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
+        raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
+    return given
+
+
+def source_dir(args: argparse.Namespace, out: str) -> str:
+    return args.source or os.path.join(out, "source")
+
+
+def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list[Arm]:
+    """The runs to make, in training order, with every config field they set (epochs resolved)."""
+    common = {"agent": AGENT, "seeds": args.seeds, "seed": args.seed, **extra}
+    target = {**common, "env": TARGET_ENV, "exploration_starts": HELD_STARTS if args.held_starts else 0.0}
+    source_ref = source_dir(args, out) + (f":{args.source_checkpoint}" if args.source_checkpoint else "")
+    runs = [] if args.source else [("source", {**common, "env": SOURCE_ENV}, args.source_epochs)]
+    runs += [
+        ("transfer", {**target, "init_from": source_ref, "init_parts": args.init_parts}, args.epochs),
+        ("scratch", target, args.epochs),
+    ]
+    arms = []
+    for name, given, epochs in runs:
+        given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
+        arms.append(Arm(name, {**given, "epochs": config_lib.resolve(given)[0].epochs}))
+    return arms
+
+
+def latest(arm: Arm) -> int | None:
+    """The epoch of the run's latest checkpoint (None: it has none)."""
+    return checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
+
+
+def status(arm: Arm) -> str:
+    """"done" (latest checkpoint at its epochs), "resume" (an earlier checkpoint) or "new" (none)."""
+    step = latest(arm)
+    return "new" if step is None else "done" if step >= arm.epochs else "resume"
+
+
+def plan_lines(arms: Sequence[Arm], envs: dict[str, Any]) -> list[str]:
+    """One line per run: what it is, its epochs and env steps per seed, and what this command does with it."""
+    lines = []
+    for arm in arms:
+        run, train, _ = config_lib.resolve(arm.given)
+        per_epoch = train.cycles_per_epoch * train.num_envs * envs[run.env].episode_length
+        source = f", parameters from {run.init_from}" if run.init_from else ""
+        lines.append(
+            f"{arm.name}: {run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}"
+            f"{source}; {run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed "
+            f"in {run.run_dir} [{status(arm)}" + (f", checkpoint at epoch {latest(arm)}]" if latest(arm) else "]")
+        )
+    return lines
+
+
+def train_arm(arm: Arm, env, quiet: bool) -> None:
+    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done."""
+    state = status(arm)
+    if state == "done":
+        print(f"{arm.name}: done ({arm.run_dir})")
+        return
+    resume = state == "resume"
+    configs = loop.prepare(arm.given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
+                           overwrite=not resume)
+    if not resume:  # a run stopped before its first checkpoint starts again
+        loop.delete_run_dir(arm.run_dir)
+    run = configs[0]
+    segments = env.observation_spec.proprio_segments
+    initialize = transfer.make_initializer(run, segments, envs_mjx.make) if run.init_from else None
+    row = loop.train(env, *configs, quiet=quiet, resume=resume, initialize=initialize)
+    print(f"{arm.name}:", end=" ")
+    run_cli.print_summary(run, row)
+
+
+def _cell(hit: plot.Reached | None) -> tuple[str, str]:
+    if hit is None:
+        return "not reached", "not reached"
+    return f"{hit.env_steps:,.0f} (epoch {hit.epoch})", f"{hit.wall_time:,.0f} s"
+
+
+def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
+    """Markdown, one row per arm: env steps and wall time to each threshold (first epoch whose seed
+    mean reaches it), normalised AUC, final success (mean ± std over seeds of the last `last_n` epochs)."""
+    head = ["arm", "seeds", "epochs", "env steps per seed"]
+    for t in THRESHOLDS:
+        head += [f"env steps to {t:g}", f"time to {t:g}"]
+    head += ["AUC", f"final success (last {last_n} epochs)"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for c in curves:
+        cells = [c.label, str(c.n_seeds), str(len(c.epoch)), f"{c.env_steps[-1]:,.0f}"]
+        for t in THRESHOLDS:
+            cells += _cell(plot.time_to_threshold(c, t))
+        mean, std, used = plot.final_success(c, last_n)
+        cells += [f"{plot.normalized_auc(c):.3f}", f"{mean:.3f} ± {std:.3f}" + ("" if used == last_n else f" (last {used})")]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _loaded(run_dir: str) -> dict | None:
+    try:
+        return plot.load_run(run_dir)
+    except plot.RunError:
+        return None
+
+
+def write_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
+    """success.png/.csv and table.md in `out` from the arms that have epochs; returns the table (None if none has)."""
+    runs = {arm.name: r for arm in arms if arm.name != "source" and (r := _loaded(arm.run_dir))}
+    if not runs:
+        return None
+    curves = plot.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
+    plot.plot(curves, os.path.join(out, "success"), title=title)
+    notes = [
+        f"# {title}",
+        "",
+        "Success is the seed mean of each epoch's eval success; a threshold is reached at the first epoch whose "
+        "mean is at least it. Times are each run's `wall_time` (its compilation included, no persistent "
+        "compilation cache). AUC is the mean success over the epochs run.",
+        "",
+        results_table(curves, last_n),
+        "",
+    ]
+    source = _loaded(source_dir)
+    if source is not None:
+        notes.append(
+            f"Source: {source['env']} {source['agent']} in {source_dir}, {len(source['epoch'])} epochs, "
+            f"{source['env_steps'][-1]:,.0f} env steps per seed, {source['wall_time'][-1]:,.0f} s (not in the times above); "
+            f"final seed-mean success {source['success'][-1].mean():.3f}."
+        )
+    text = "\n".join(notes) + "\n"
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write(text)
+    return text
+
+
+def _error(message: object, code: int) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args, rest = build_parser().parse_known_args(argv)
+    out = args.out or ("results/transfer-held" if args.held_starts else "results/transfer")
+    try:
+        arms = make_arms(args, pass_through(rest), out)
+        for arm in arms:  # every run's values, before the first one trains
+            validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names(), device_count=jax.device_count())
+    except ConfigError as err:
+        return _error(err, run_cli.EXIT_BAD_INPUT)
+    envs = {name: envs_mjx.make(name, render=True) for name in dict.fromkeys(arm.given["env"] for arm in arms)}
+    print("\n".join(["plan:", *plan_lines(arms, envs)]), flush=True)
+    code = 0
+    try:
+        for arm in arms:
+            train_arm(arm, envs[arm.given["env"]], args.quiet)
+    except (ConfigError, CheckpointError) as err:
+        code = _error(err, run_cli.EXIT_BAD_INPUT)
+    except loop.Diverged as err:
+        code = _error(err, run_cli.EXIT_DIVERGED)
+    except loop.Interrupted as stop:
+        print(f"{stop}; run the same command again to continue", file=sys.stderr)
+        code = stop.exit_code
+    variant = ", held starts" if args.held_starts else ""
+    title = f"{TARGET_ENV}: from scratch and from {SOURCE_ENV}'s representation ({args.seeds} seeds{variant})"
+    table = write_results(out, arms, source_dir(args, out), title, args.last_n)
+    print(f"\n{table}\nwritten to {out}" if table else "no epochs yet: nothing to plot")
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())
