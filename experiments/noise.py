@@ -1,0 +1,163 @@
+"""Noise robustness (paper Sec. IV-B, Table II): `python -m experiments.noise`.
+
+Trains multimodal_bidal, multimodal_baseline and proprio_baseline on nicol_slide with
+observation noise s + κ·N(0, σ) on `ee_pos`, `ee_rot` and `obj_pos` (σ: each feature's
+interquartile range over the clean history; `bidal_jax/noise.py`) at κ = 5, 10 and 15 %,
+5 runs each. Per agent, the 3 κ × 5 runs are ONE compiled program: 15 vmapped runs whose κ
+is data in the training state (run i has κ_{i // 5} and its own seed key).
+
+Writes into `--out` (default results/noise): one run directory per agent (`<agent>/`,
+metrics.csv with `eval_success_seed0..14`), `table.md` (the paper's Table II: per κ and
+agent, the mean over the 5 runs of each run's mean success over its last N epochs, N = 5 at
+5 % and 30 at 10 and 15 %, ± the std over the runs, beside the paper's figures), `curves.png`
+and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
+
+Resumable: a finished agent is skipped, an interrupted one resumed from its latest
+checkpoint; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
+and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
+the nicol_slide preset's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+
+import envs_mjx
+from bidal_jax import checkpoint, config as config_lib, loop
+from bidal_jax.checkpoint import CheckpointError
+from bidal_jax.validate import ConfigError
+from experiments import plot
+
+KAPPAS = (0.05, 0.10, 0.15)
+LAST_N = {0.05: 5, 0.10: 30, 0.15: 30}  # the paper's window per κ (Table II)
+AGENTS = ("multimodal_bidal", "multimodal_baseline", "proprio_baseline")
+SEGMENTS = "ee_pos,ee_rot,obj_pos"
+# the paper's Table II: κ -> agent -> (mean, std)
+PAPER = {
+    0.05: {"multimodal_bidal": (0.874, 0.0127), "multimodal_baseline": (0.886, 0.0143), "proprio_baseline": (0.882, 0.0191)},
+    0.10: {"multimodal_bidal": (0.764, 0.0222), "multimodal_baseline": (0.696, 0.0542), "proprio_baseline": (0.699, 0.0519)},
+    0.15: {"multimodal_bidal": (0.615, 0.0320), "multimodal_baseline": (0.590, 0.0410), "proprio_baseline": (0.554, 0.0358)},
+}
+SIZE_OPTIONS = ("num_envs", "cycles_per_epoch", "updates_per_cycle", "batch_size", "buffer_episodes", "eval_envs")
+
+
+def run_kappas(runs: int) -> np.ndarray:
+    """κ of each vmapped run: KAPPAS[i // runs]."""
+    return np.repeat(np.asarray(KAPPAS, np.float32), runs)
+
+
+def train_agent(agent: str, run_dir: str, given: dict, runs: int, quiet: bool) -> None:
+    """Train (or resume, or skip when finished) one agent's 3 κ × `runs` program in `run_dir`."""
+    given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(KAPPAS) * runs}
+    ckpt_dir = os.path.join(run_dir, "checkpoints")
+    resume = checkpoint.latest_step(ckpt_dir) is not None
+    if resume and checkpoint.latest_step(ckpt_dir) >= given["epochs"]:
+        print(f"{agent}: finished ({run_dir}), skipped")
+        return
+    # a start that never reached its first checkpoint is started again (prepare refuses to
+    # delete a directory holding anything a run does not write)
+    configs = loop.prepare(given if not resume else {"run_dir": run_dir, "epochs": given["epochs"]},
+                           env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume, overwrite=not resume)
+    if not resume:
+        loop.delete_run_dir(run_dir)
+    kappas = jnp.asarray(run_kappas(runs))
+
+    def with_kappas(state):
+        return state.replace(noise=state.noise.replace(kappa=kappas))
+
+    env = envs_mjx.make(configs[0].env, render=config_lib.agent_spec(agent).uses_image)
+    loop.train(env, *configs, quiet=quiet, resume=resume, initialize=with_kappas)
+
+
+def kappa_curves(run: dict, runs: int) -> list[plot.Curve]:
+    """The run's curve split by κ: one curve per κ over its `runs` seeds."""
+    return [
+        plot.Curve(f"κ = {k:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"], run["wall_time"],
+                   run["success"][:, i * runs:(i + 1) * runs])
+        for i, k in enumerate(KAPPAS)
+    ]
+
+
+def table(curves: dict[tuple[float, str], plot.Curve]) -> str:
+    """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper."""
+    agents = [a for a in AGENTS if any(agent == a for _, agent in curves)]
+    lines = ["| κ | N | " + " | ".join(f"{a} (ours) | {a} (paper)" for a in agents) + " |",
+             "| --- | --- |" + " --- | --- |" * len(agents)]
+    for k in KAPPAS:
+        cells = []
+        for a in agents:
+            curve = curves.get((k, a))
+            if curve is None:
+                cells.append("— ")
+            else:
+                mean, std, used = plot.final_success(curve, LAST_N[k])
+                partial = f" (last {used} of {len(curve.epoch)} epochs)" if used < LAST_N[k] else f" ({len(curve.epoch)} epochs)"
+                cells.append(f"{mean:.3f} ± {std:.4f}{partial}")
+            cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
+        lines.append(f"| {k:.0%} | {LAST_N[k]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def report(out: str, runs: int) -> str:
+    """Write table.md, curves.png and curves.csv from the agents' run directories; return the table."""
+    found = {}
+    for agent in AGENTS:
+        run_dir = os.path.join(out, agent)
+        if os.path.isfile(os.path.join(run_dir, "metrics.csv")):
+            for k, curve in zip(KAPPAS, kappa_curves(plot.load_run(run_dir), runs)):
+                found[k, agent] = curve
+    if not found:
+        return ""
+    plot.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
+    text = table(found)
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write(text)
+    return text
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m experiments.noise", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=os.path.join("results", "noise"), help="results folder")
+    parser.add_argument("--env", default="nicol_slide", choices=envs_mjx.names())
+    parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
+    parser.add_argument("--runs", type=int, default=5, help="runs (seeds) per κ")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs per run (default: the env preset's)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
+    for name in SIZE_OPTIONS:
+        parser.add_argument("--" + name.replace("_", "-"), type=int, default=None, help="(default: the env preset's)")
+    parser.add_argument("--quiet", action="store_true")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
+             **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
+    given["epochs"] = args.epochs or config_lib.resolve(given)[0].epochs
+    try:
+        if args.runs < 1:
+            raise ConfigError(f"--runs {args.runs}: must be a positive integer")
+        os.makedirs(args.out, exist_ok=True)
+        print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
+              f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
+        loop.enable_compilation_cache()
+        for agent in args.agents:
+            train_agent(agent, os.path.join(args.out, agent), given, args.runs, args.quiet)
+    except (ConfigError, CheckpointError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    except loop.Interrupted as stop:
+        print(f"{stop}; run the same command again to continue", file=sys.stderr)
+        return stop.exit_code
+    print(report(args.out, args.runs))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
