@@ -35,7 +35,7 @@ class TrainState:
     buffer: replay.ReplayState
     key: jax.Array
     eval_key: jax.Array  # the key of the latest evaluation (acting.evaluate reproduces it)
-    noise: noise.NoiseState  # κ and σ of the observation noise (paper Eq. 9); F = 0 without noise
+    noise: noise.NoiseState | None  # κ and σ of the observation noise (paper Eq. 9); None without noise
     env_steps: jax.Array
     updates: jax.Array
     epoch: jax.Array
@@ -132,7 +132,7 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
             buffer=replay.init(config.buffer_episodes, example_episode),
             key=key_state,
             eval_key=jax.random.split(key_state)[1],  # replaced by each epoch's evaluation key
-            noise=noise.init(config.obs_noise, len(noisy)),
+            noise=noise.init(config.obs_noise, len(noisy)) if len(noisy) else None,
             env_steps=jnp.zeros((), jnp.int32),
             updates=jnp.zeros((), jnp.int32),
             epoch=jnp.zeros((), jnp.int32),

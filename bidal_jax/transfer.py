@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import checkpoint, config as config_lib, normalizer
+from bidal_jax import checkpoint, config as config_lib, noise, normalizer
 from bidal_jax.checkpoint import CheckpointError, leaf_name
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.networks import PROPRIO_LAYER
@@ -74,17 +74,11 @@ def row_map(source: Segments, target: Segments) -> np.ndarray:
 
     Raises ValueError when a target segment is missing from the source or has another size.
     """
-    starts, sizes, start = {}, dict(source), 0
-    for name, size in source:
-        starts[name] = start
-        start += size
-    missing = [name for name, _ in target if name not in sizes]
-    if missing:
-        raise ValueError(f"proprio segments {missing} are not in the source's ({', '.join(sizes)})")
+    sizes = dict(source)
     for name, size in target:
-        if sizes[name] != size:
+        if name in sizes and sizes[name] != size:
             raise ValueError(f"proprio segment {name} has {sizes[name]} features in the source, {size} in this run")
-    return np.concatenate([np.arange(starts[name], starts[name] + size) for name, size in target]).astype(np.int32)
+    return noise.feature_indices(tuple(source), tuple(name for name, _ in target))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,9 +101,12 @@ def _compare(where: str, saved: dict, target: dict, rows: np.ndarray | None) -> 
     """Refuse unless the source's leaves `saved` match this run's `target` by name, per-seed shape and
     dtype; row-mapped leaves are compared after the mapping."""
     have, want = _leaves(saved), _leaves(target)
-    for name in sorted(set(have) ^ set(want)):
-        owner, other, leaf = ("the source", "this run", have[name]) if name in have else ("this run", "the source", want[name])
-        raise CheckpointError(f"{where}: {owner} has {name} ({tuple(leaf.shape[1:])} per seed), {other} has none")
+    unmatched = sorted(set(have) ^ set(want))
+    if unmatched:
+        name = unmatched[0]
+        owner, other = ("the source", "this run") if name in have else ("this run", "the source")
+        shape = tuple((have[name] if name in have else want[name]).shape[1:])
+        raise CheckpointError(f"{where}: {owner} has {name} ({shape} per seed), {other} has none")
     for name, leaf in want.items():
         source_shape = tuple(have[name].shape[1:])
         mapped = (len(rows), *source_shape[1:]) if name in ROW_MAPPED else source_shape
@@ -150,25 +147,29 @@ def plan(run: RunConfig, target: Any, segments: Segments, make_env: Callable[...
                 raise CheckpointError(
                     f"--init-parts {run.init_parts}: {whose} has no {name}; it has {', '.join(sorted(networks))}"
                 )
+    # the source's leaves to read, and this run's leaves that receive them
     wanted = {"params": {name: saved["params"][name] for name in parts}}
-    restored_target = {"params": {name: target.params[name] for name in parts}}
+    receiving = {"params": {name: target.params[name] for name in parts}}
     rows = None
     if "encoder" in parts:
-        wanted["goal_norm"], restored_target["goal_norm"] = saved["goal_norm"], target.goal_norm
-    if PROPRIO_KERNEL in _leaves(restored_target):
-        source_segments = make_env(source.env, render=False).observation_spec.proprio_segments
-        source_size = int(saved["proprio_norm"]["mean"].shape[-1])
-        if source_size != sum(size for _, size in source_segments):
-            raise CheckpointError(
-                f"{where}: the source's proprio has {source_size} features, but env {source.env} now has "
-                f"{sum(size for _, size in source_segments)}: the env changed since the source was trained"
-            )
+        wanted["goal_norm"], receiving["goal_norm"] = saved["goal_norm"], target.goal_norm
+    if PROPRIO_KERNEL in _leaves(receiving):
+        try:
+            source_segments = make_env(source.env, render=False).observation_spec.proprio_segments
+        except ValueError as err:  # an env no longer registered
+            raise CheckpointError(f"{where}: {err}") from err
         try:
             rows = row_map(source_segments, segments)
         except ValueError as err:
-            raise CheckpointError(f"{where}: {err}; this run's env is {run.env}, the source's {source.env}") from err
-        wanted["proprio_norm"], restored_target["proprio_norm"] = saved["proprio_norm"], target.proprio_norm
-    _compare(where, wanted, restored_target, rows)
+            raise CheckpointError(f"{where}: this run's env {run.env} does not fit {source.env}'s: {err}") from err
+        saved_size, env_size = int(saved["proprio_norm"]["mean"].shape[-1]), sum(size for _, size in source_segments)
+        if saved_size != env_size:
+            raise CheckpointError(
+                f"{where}: the source's proprio has {saved_size} features, env {source.env}'s segments now "
+                f"{env_size}: the env changed since the source was trained"
+            )
+        wanted["proprio_norm"], receiving["proprio_norm"] = saved["proprio_norm"], target.proprio_norm
+    _compare(where, wanted, receiving, rows)
     return Plan(directory, step, parts, wanted, rows, seeds)
 
 

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes.util
 import importlib
 import importlib.metadata
 import io
@@ -31,9 +32,10 @@ def _import_without(module: str, noise: re.Pattern) -> None:
 
 # MuJoCo picks its OpenGL backend once, on import, from MUJOCO_GL; its default (GLFW) needs a
 # display. On a headless Linux machine default to EGL, so that offscreen rendering
-# (envs_mjx.gym's render) works; an explicit MUJOCO_GL, or mujoco imported earlier, wins.
+# (envs_mjx.gym's render) works, where an EGL library is installed (without one, mujoco's import
+# itself would fail); an explicit MUJOCO_GL, or mujoco imported earlier, wins.
 _HEADLESS = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-if _HEADLESS and "mujoco" not in sys.modules:
+if _HEADLESS and "mujoco" not in sys.modules and ctypes.util.find_library("EGL"):
     os.environ.setdefault("MUJOCO_GL", "egl")
 
 # mujoco.mjx tries its optional Warp backend on import and prints "Failed to import warp: No

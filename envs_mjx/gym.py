@@ -83,91 +83,120 @@ def goal_obs(obs: dict[str, jax.Array], image: bool) -> dict[str, jax.Array]:
     return out
 
 
-def batched_reset(env: Any, num_envs: int, key: jax.Array) -> tuple[State, jax.Array]:
-    """`num_envs` initial states of `env` and the key left for later autoresets."""
-    key, sub = jax.random.split(key)
-    return jax.vmap(env.reset)(jax.random.split(sub, num_envs)), key
+def host_view(state: State, reward: jax.Array, truncated: jax.Array, image: bool) -> dict[str, Any]:
+    """What the numpy side reads of batched `state`: goal observation, reward, truncation, success."""
+    return {"obs": goal_obs(state.obs, image), "reward": reward, "truncated": truncated,
+            "is_success": state.metrics["success"] > 0}
 
 
-def autoreset(env: Any, done: jax.Array, state: State, key: jax.Array) -> tuple[State, jax.Array]:
-    """`state` with the envs flagged in `done` replaced by fresh initial states."""
-    fresh, key = batched_reset(env, done.shape[0], key)
+def batched_reset(env: Any, keys: jax.Array) -> tuple[State, jax.Array]:
+    """Initial states of `env`, one per key in `keys` [num_envs, 2], and the keys each env
+    keeps for its later autoresets."""
+    split = jax.vmap(jax.random.split)(keys)
+    return jax.vmap(env.reset)(split[:, 0]), split[:, 1]
+
+
+def reset_views(env: Any, num_envs: int, image: bool, key: jax.Array) -> tuple[tuple[State, jax.Array], dict]:
+    """(initial states, per-env keys) to carry, and their host views ("now" and, alike, "final")."""
+    state, keys = batched_reset(env, jax.random.split(key, num_envs))
+    view = host_view(state, state.reward, state.done, image)
+    return (state, keys), {"now": view, "final": view}
+
+
+def autoreset(env: Any, done: jax.Array, carry: tuple[State, jax.Array]) -> tuple[State, jax.Array]:
+    """`carry` (states, keys) with the envs flagged in `done` replaced by fresh initial states."""
+    fresh = batched_reset(env, carry[1])
     pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
-    return jax.tree.map(pick, fresh, state), key
+    return jax.tree.map(pick, fresh, carry)
 
 
-# The carried state crosses the jit boundary packed: every argument and result of a jitted call
-# costs microseconds of dispatch on the CPU and an MJX state has ~95 arrays, which cost more
-# than the physics of a small batch, so they travel as one [num_envs, k] buffer per dtype.
+# Pytrees cross the jit boundary packed. Every argument and result of a jitted call costs
+# microseconds of dispatch and conversion on the CPU, and an MJX state has ~95 arrays, which
+# cost more than the physics of a small batch; so the state, and what the host reads, travel
+# as one [num_envs, k] buffer per element width: the leaves of each dtype are concatenated
+# and the result bit-cast (not converted) into the buffer of its width (uint32 holds float32,
+# int32 and keys; uint8 holds bools and images).
 @dataclasses.dataclass(frozen=True)
 class Packing:
-    """Where each leaf of a batched pytree lives: (dtype, first column, end column, per-env shape)."""
+    """Where the leaves of a batched pytree live.
+
+    slots: per leaf (dtype, first column, end column, per-env shape) within its dtype's segment;
+    segments: per dtype (dtype, buffer, first column, end column) within the buffer.
+    """
 
     treedef: Any
     slots: tuple[tuple[str, int, int, tuple[int, ...]], ...]
+    segments: tuple[tuple[str, str, int, int], ...]
 
 
 def packing_of(tree: Any) -> Packing:
     """The packing of a batched pytree (arrays or shape structs with a leading env axis)."""
     leaves, treedef = jax.tree.flatten(tree)
-    ends: dict[str, int] = {}
+    sizes: dict[str, int] = {}
     slots = []
     for leaf in leaves:
-        dtype, start = np.dtype(leaf.dtype).name, ends.get(np.dtype(leaf.dtype).name, 0)
-        ends[dtype] = start + math.prod(leaf.shape[1:])
-        slots.append((dtype, start, ends[dtype], tuple(leaf.shape[1:])))
-    return Packing(treedef, tuple(slots))
+        dtype = np.dtype(leaf.dtype).name
+        start = sizes.get(dtype, 0)
+        sizes[dtype] = start + math.prod(leaf.shape[1:])
+        slots.append((dtype, start, sizes[dtype], tuple(leaf.shape[1:])))
+    widths: dict[str, int] = {}
+    segments = []
+    for dtype, size in sizes.items():
+        lane = f"uint{8 * np.dtype(dtype).itemsize}"
+        start = widths.get(lane, 0)
+        widths[lane] = start + size
+        segments.append((dtype, lane, start, widths[lane]))
+    return Packing(treedef, tuple(slots), tuple(segments))
 
 
 def pack(tree: Any, packing: Packing) -> dict[str, jax.Array]:
-    """The leaves of batched `tree` as one [num_envs, k] buffer per dtype."""
-    columns: dict[str, list[jax.Array]] = {}
+    """The leaves of batched `tree` as one [num_envs, k] buffer per element width."""
+    by_dtype: dict[str, list[jax.Array]] = {}
     for leaf, (dtype, *_) in zip(jax.tree.leaves(tree), packing.slots):
-        columns.setdefault(dtype, []).append(leaf.reshape(leaf.shape[0], -1))
-    return {dtype: jnp.concatenate(parts, axis=1) for dtype, parts in columns.items()}
+        by_dtype.setdefault(dtype, []).append(leaf.reshape(leaf.shape[0], -1))
+    lanes: dict[str, list[jax.Array]] = {}
+    for dtype, lane, _, _ in packing.segments:
+        lanes.setdefault(lane, []).append(jnp.concatenate(by_dtype[dtype], axis=1).view(lane))
+    return {lane: jnp.concatenate(parts, axis=1) for lane, parts in lanes.items()}
 
 
 def unpack(buffers: dict[str, Any], packing: Packing) -> Any:
-    """The pytree that `pack` packed into `buffers` (jax or numpy arrays)."""
+    """The pytree that `pack` packed into `buffers` (jax or numpy arrays; numpy gives views)."""
     n = next(iter(buffers.values())).shape[0]
-    leaves = [buffers[dtype][:, start:end].reshape((n, *shape)) for dtype, start, end, shape in packing.slots]
+    segment = {dtype: buffers[lane][:, start:end].view(dtype) for dtype, lane, start, end in packing.segments}
+    leaves = [segment[dtype][:, start:end].reshape((n, *shape)) for dtype, start, end, shape in packing.slots]
     return jax.tree.unflatten(packing.treedef, leaves)
 
 
-def packed_reset(env: Any, num_envs: int, image: bool, packing: Packing, key: jax.Array):
-    """The jitted body of `VectorGoalEnv.reset`: packed states, key, observation and success."""
-    state, key = batched_reset(env, num_envs, key)
-    return (pack(state, packing), key), {"obs": goal_obs(state.obs, image), "is_success": state.metrics["success"] > 0}
+def packed_reset(env: Any, num_envs: int, image: bool, packings: tuple[Packing, Packing], key: jax.Array):
+    """The jitted body of `VectorGoalEnv.reset`: the packed carry and packed host views."""
+    carry, views = reset_views(env, num_envs, image, key)
+    return pack(carry, packings[0]), pack(views, packings[1])
 
 
-def packed_step(env: Any, image: bool, packing: Packing, buffers: dict[str, jax.Array], key: jax.Array,
+def packed_step(env: Any, image: bool, packings: tuple[Packing, Packing], buffers: dict[str, jax.Array],
                 action: jax.Array):
     """The jitted body of `VectorGoalEnv.step`: every env steps, then same-step autoreset.
 
-    Returns the packed states and key to carry, what the host reads every step (observation
-    after any reset, reward, truncation, success) and what it reads only on steps that
-    truncate (the ended episodes' last observation and success).
+    Returns the packed carry (states, per-env keys) and the packed host views: "now", read
+    every step (observation after any reset, reward, truncation, success), and "final", the
+    stepped states before the reset, read on steps that truncate (the ended episodes' last step).
     """
-    stepped = jax.vmap(env.step)(unpack(buffers, packing), action)
+    state, keys = unpack(buffers, packings[0])
+    stepped = jax.vmap(env.step)(state, action)
     done = stepped.done
     # every env of a batch ends on the same step (same T, reset together): one branch per batch
-    state, key = jax.lax.cond(jnp.any(done), functools.partial(autoreset, env, done), lambda s, k: (s, k), stepped, key)
-    host = {
-        "obs": goal_obs(state.obs, image),
-        "reward": stepped.reward,
-        "truncated": done,
-        "is_success": state.metrics["success"] > 0,
-    }
-    final = {"obs": goal_obs(stepped.obs, image), "is_success": stepped.metrics["success"] > 0}
-    return (pack(state, packing), key), host, final
+    carry = jax.lax.cond(jnp.any(done), functools.partial(autoreset, env, done), lambda c: c, (stepped, keys))
+    views = {"now": host_view(carry[0], stepped.reward, done, image), "final": host_view(stepped, stepped.reward, done, image)}
+    return pack(carry, packings[0]), pack(views, packings[1])
 
 
 @dataclasses.dataclass(frozen=True)
 class Batched:
-    """A task and its jitted batched functions (reset, step, reward) with the packing of its state."""
+    """A task, its jitted batched functions and the packings (carry, host views) they use."""
 
     env: Any
-    packing: Packing
+    packings: tuple[Packing, Packing]
     reset: Callable
     step: Callable
     reward: Callable
@@ -176,22 +205,23 @@ class Batched:
 @functools.cache
 def batched(name: str, num_envs: int, image: bool) -> Batched:
     """The task `name` (render=image) and its jitted functions for `num_envs` envs, built once
-    per process and shared by every adapter of the same arguments (one compilation)."""
+    per process and shared by every adapter with the same arguments (one compilation)."""
     env = envs_mjx.make(name, render=image)
-    shapes, _ = jax.eval_shape(functools.partial(batched_reset, env, num_envs), jax.random.PRNGKey(0))
-    packing = packing_of(shapes)
+    carry, views = jax.eval_shape(functools.partial(reset_views, env, num_envs, image), jax.random.PRNGKey(0))
+    packings = (packing_of(carry), packing_of(views))
     return Batched(
         env=env,
-        packing=packing,
-        reset=jax.jit(functools.partial(packed_reset, env, num_envs, image, packing)),
-        step=jax.jit(functools.partial(packed_step, env, image, packing)),
+        packings=packings,
+        reset=jax.jit(functools.partial(packed_reset, env, num_envs, image, packings)),
+        step=jax.jit(functools.partial(packed_step, env, image, packings)),
         reward=jax.jit(env.compute_reward),
     )
 
 
-def to_numpy(tree: Any) -> Any:
-    """Device arrays as fresh, writable numpy arrays (one transfer for the whole tree)."""
-    return jax.tree.map(np.array, jax.device_get(tree))
+def to_host(buffers: dict[str, jax.Array], packing: Packing) -> dict[str, Any]:
+    """Packed device buffers as the numpy pytree they hold: one transfer, one writable copy per
+    buffer (fresh on every call), its leaves views of those copies."""
+    return unpack({k: np.array(v) for k, v in jax.device_get(buffers).items()}, packing)
 
 
 def vector_info(is_success: np.ndarray) -> dict[str, np.ndarray]:
@@ -245,7 +275,7 @@ class VectorGoalEnv(VectorEnv):
         self.single_action_space = spaces.Box(-1.0, 1.0, (self.env.action_size,), np.float32)
         self.observation_space = batch_space(self.single_observation_space, num_envs)
         self.action_space = batch_space(self.single_action_space, num_envs)
-        self._carry: tuple[dict[str, jax.Array], jax.Array] | None = None  # packed states, key
+        self._carry: dict[str, jax.Array] | None = None  # packed (states, per-env keys)
         self._renderer: tuple[mujoco.Renderer, mujoco.MjData] | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
@@ -253,9 +283,9 @@ class VectorGoalEnv(VectorEnv):
         if options:
             raise ValueError(f"reset options {sorted(options)}: this env takes no reset options")
         super().reset(seed=seed)
-        self._carry, host = self._batched.reset(jax.random.PRNGKey(self.np_random.integers(2**32, dtype=np.uint32)))
-        host = to_numpy(host)
-        return host["obs"], vector_info(host["is_success"])
+        self._carry, views = self._batched.reset(jax.random.PRNGKey(self.np_random.integers(2**32, dtype=np.uint32)))
+        now = to_host(views, self._batched.packings[1])["now"]
+        return now["obs"], vector_info(now["is_success"])
 
     def step(self, actions: Any):
         """Step every env by `actions` ([num_envs, A], clipped to [-1, 1]); same-step autoreset."""
@@ -265,18 +295,17 @@ class VectorGoalEnv(VectorEnv):
         if actions.shape[:1] != (self.num_envs,):
             raise ValueError(f"actions have shape {actions.shape}; expected ({self.num_envs}, {self.env.action_size})")
         check_action(actions, self.env.action_size)
-        self._carry, host, final = self._batched.step(*self._carry, actions)
-        host = to_numpy(host)
-        truncated = host["truncated"]
-        info = vector_info(host["is_success"])
+        self._carry, views = self._batched.step(self._carry, actions)
+        views = to_host(views, self._batched.packings[1])
+        now, final, truncated = views["now"], views["final"], views["now"]["truncated"]
+        info = vector_info(now["is_success"])
         if truncated.any():
-            final = to_numpy(final)
             info["final_obs"] = per_env_obs(final["obs"], truncated)
             info["_final_obs"] = truncated.copy()
             info["final_info"] = {"is_success": final["is_success"], "_is_success": truncated.copy()}
             info["_final_info"] = truncated.copy()
         terminated = np.zeros(self.num_envs, bool)
-        return host["obs"], host["reward"], terminated, truncated, info
+        return now["obs"], now["reward"], terminated, truncated, info
 
     def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any = None) -> np.ndarray:
         """The task's sparse reward for goals batched over leading axes (numpy in and out)."""
@@ -293,7 +322,7 @@ class VectorGoalEnv(VectorEnv):
             mj_model = self.env.mj_model
             self._renderer = (mujoco.Renderer(mj_model, *RENDER_SIZE), mujoco.MjData(mj_model))
         renderer, mj_data = self._renderer
-        state = unpack(jax.device_get(self._carry[0]), self._batched.packing)
+        state, _ = unpack(jax.device_get(self._carry), self._batched.packings[0])
         renderer.update_scene(mjx_to_mjdata(state.data, self.env.mj_model, mj_data),
                               camera=0 if self.env.mj_model.ncam else -1)
         return (renderer.render(),)

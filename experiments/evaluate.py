@@ -22,8 +22,6 @@ import math
 import os
 import sys
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen rendering without a display; read when mujoco is imported
-
 import jax
 import numpy as np
 

@@ -90,9 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "instead of training OUT/source")
     parser.add_argument("--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' "
                         "(default: the latest)")
-    parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source run (default: its preset)")
-    parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: the preset)")
-    parser.add_argument("--seeds", type=int, default=5, help="seeds of every run (vmapped); the source needs at least as many")
+    parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source (default: its preset)")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: preset)")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped (the source needs as many)")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
     parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
@@ -200,7 +200,8 @@ def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
         for t in THRESHOLDS:
             cells += _cell(plot.time_to_threshold(c, t))
         mean, std, used = plot.final_success(c, last_n)
-        cells += [f"{plot.normalized_auc(c):.3f}", f"{mean:.3f} ± {std:.3f}" + ("" if used == last_n else f" (last {used})")]
+        final = f"{mean:.3f} ± {std:.3f}" + ("" if used == last_n else f" (last {used})")
+        cells += [f"{plot.normalized_auc(c):.3f}", final]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -233,8 +234,8 @@ def write_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, la
     if source is not None:
         notes.append(
             f"Source: {source['env']} {source['agent']} in {source_dir}, {len(source['epoch'])} epochs, "
-            f"{source['env_steps'][-1]:,.0f} env steps per seed, {source['wall_time'][-1]:,.0f} s (not in the times above); "
-            f"final seed-mean success {source['success'][-1].mean():.3f}."
+            f"{source['env_steps'][-1]:,.0f} env steps per seed, {source['wall_time'][-1]:,.0f} s (not in the times "
+            f"above); final seed-mean success {source['success'][-1].mean():.3f}."
         )
     text = "\n".join(notes) + "\n"
     with open(os.path.join(out, "table.md"), "w") as f:
@@ -251,6 +252,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     out = args.out or ("results/transfer-held" if args.held_starts else "results/transfer")
     try:
+        if args.last_n < 1:
+            raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
         arms = make_arms(args, pass_through(rest), out)
         for arm in arms:  # every run's values, before the first one trains
             validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names(), device_count=jax.device_count())

@@ -184,7 +184,7 @@ def test_row_map_picks_source_rows_by_segment_name_in_the_targets_order():
     source = (("a", 2), ("b", 3), ("c", 1))
     assert transfer.row_map(source, (("c", 1), ("a", 2))).tolist() == [5, 0, 1]
     assert transfer.row_map(source, (("b", 3),)).tolist() == [2, 3, 4]
-    with pytest.raises(ValueError, match=r"\['d'\] are not in the source's \(a, b, c\)"):
+    with pytest.raises(ValueError, match="unknown proprio segment 'd'; segments are a, b, c"):
         transfer.row_map(source, (("a", 2), ("d", 1)))
     with pytest.raises(ValueError, match="segment b has 3 features in the source, 2 in this run"):
         transfer.row_map(source, (("b", 2),))
@@ -257,7 +257,7 @@ REFUSALS = {
     ),
     "segments the source lacks": (
         lambda src, pro, tmp: ["--init-from", src, "--env", RENAMED],
-        ["proprio segments ['qvel'] are not in the source's (q, qdot)", f"this run's env is {RENAMED}, the source's planar_reach"],
+        [f"this run's env {RENAMED} does not fit planar_reach's", "unknown proprio segment 'qvel'"],
     ),
     "more seeds than the source": (lambda src, pro, tmp: ["--init-from", src, "--seeds", "4"],
                                    ["--seeds 4", "has 3 seed(s)", "at least 4"]),
