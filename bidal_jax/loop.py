@@ -154,7 +154,8 @@ def device_memory() -> int:
 
 
 def check_memory(needed: int, available: int, seeds: int) -> None:
-    """Refuse a training state that cannot fit in `MEMORY_SHARE` of the device's memory."""
+    """Refuse a training state whose share on one device (`needed` bytes) cannot fit in
+    `MEMORY_SHARE` of that device's memory."""
     if needed > MEMORY_SHARE * available:
         gib = 2.0**30
         raise ConfigError(
@@ -180,7 +181,7 @@ def prepare(
     env_names = tuple(env_names)
 
     def check(configs: Configs) -> None:
-        validate.check(*configs, env_names=env_names, device_count=jax.device_count())
+        validate.check(*configs, env_names=env_names)
 
     configs = config_lib.resolve(given)
     check(configs)  # the values given
@@ -197,7 +198,10 @@ def prepare(
     # what the env must offer and whether the state fits (builds the env and traces init, no compile)
     env = make_env(configs[0].env, render=False)
     validate.check_env_support(configs[1], env)
-    check_memory(state_bytes(env, *configs), device_memory(), configs[0].seeds)
+    from bidal_jax.train import seed_devices
+
+    per_device = state_bytes(env, *configs) // len(seed_devices(configs[0].seeds))
+    check_memory(per_device, device_memory(), configs[0].seeds)
     if configs[0].init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(env, *configs, make_env=make_env)
     return configs
@@ -357,18 +361,20 @@ def _log(message: str) -> None:
 
 
 def _programs(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig):
-    """The seeds' jitted (init, epoch) and their keys."""
-    from bidal_jax.train import make_seeded, make_train
+    """The seeds' jitted (init, epoch), their keys, and the seed axis' sharding over the devices."""
+    from bidal_jax.train import make_seeded, make_train, seed_devices, seed_sharding
 
-    init, epoch = make_seeded(*make_train(env, config_lib.agent_spec(run.agent), net, train_cfg))
-    return init, epoch, jax.random.split(jax.random.PRNGKey(run.seed), run.seeds)
+    devices = seed_devices(run.seeds)
+    init, epoch = make_seeded(*make_train(env, config_lib.agent_spec(run.agent), net, train_cfg), devices)
+    return init, epoch, jax.random.split(jax.random.PRNGKey(run.seed), run.seeds), seed_sharding(devices)
 
 
 def restore_state(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, step: int | None = None):
-    """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default); compiles nothing."""
-    init, _, keys = _programs(env, run, train_cfg, net)
+    """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default),
+    placed on this process's seed devices (whatever device count wrote it); compiles nothing."""
+    init, _, keys, sharding = _programs(env, run, train_cfg, net)
     state, _, step = checkpoint.restore(os.path.join(run.run_dir, "checkpoints"), jax.eval_shape(init, keys), step)
-    return jax.device_put(state), step
+    return jax.device_put(state, sharding), step
 
 
 def build(
@@ -381,9 +387,10 @@ def build(
     from another run for transfer); a resumed run continues its checkpoint as it is.
     Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
     """
-    init, epoch, keys = _programs(env, run, train_cfg, net)
+    init, epoch, keys, sharding = _programs(env, run, train_cfg, net)
     start = time.time()
-    log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s)) ...")
+    devices = len(sharding.mesh.devices.flat)
+    log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on {devices} device(s)) ...")
     if resume:
         state, step = restore_state(env, run, train_cfg, net)
     else:

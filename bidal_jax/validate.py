@@ -1,6 +1,6 @@
 """Checks of a run's configs, before anything is compiled or written.
 
-`check(run, train, net, env_names=..., device_count=...)` raises `ConfigError` whose
+`check(run, train, net, env_names=...)` raises `ConfigError` whose
 message is one line naming the bad value (as its command-line option) and what is
 allowed, e.g. `--gamma 1.5: must be in (0, 1)`. Every config field has a rule in
 `RULES`; the cross-field rules follow (replay capacity, device sharding). Pure: the
@@ -124,7 +124,7 @@ def _check_name(name: str, value: str, valid: Iterable[str]) -> None:
 
 
 def check(
-    run: RunConfig, train: TrainConfig, net: NetworkConfig, *, env_names: Iterable[str], device_count: int
+    run: RunConfig, train: TrainConfig, net: NetworkConfig, *, env_names: Iterable[str]
 ) -> None:
     """Raise `ConfigError` for the first value the run cannot use."""
     for config in (run, train, net):
@@ -139,13 +139,6 @@ def check(
         )
     if train.obs_noise > 0 and not train.noise_segments.strip():
         raise ConfigError(f"--obs-noise {train.obs_noise}: needs --noise-segments (e.g. ee_pos,ee_rot,obj_pos)")
-    for name in ("num_envs", "eval_envs"):
-        value = getattr(train, name)
-        if value % device_count:
-            raise ConfigError(
-                f"{option(name)} {value}: must be a multiple of the device count {device_count} "
-                "(environments are split evenly over devices)"
-            )
 
 
 def check_env_support(train: TrainConfig, env: Any) -> None:

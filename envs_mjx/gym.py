@@ -26,8 +26,8 @@ ended; mask `info["_final_obs"]`) and its success in `info["final_info"]["is_suc
 as Gymnasium's SyncVectorEnv returns them in this mode.
 
 Seeding: `reset(seed=s)` seeds the env's numpy generator (`np_random`), from which the JAX
-key of the batch is drawn; the same seed gives the same episodes, autoresets included
-(their keys are split from that key inside the jitted step). `render()` draws the first
+key of the batch is drawn; each env keeps a key split from it for its autoresets, so the
+same seed gives the same episodes, autoresets included. `render()` draws the first
 env with MuJoCo's own offscreen renderer (`mujoco.Renderer`) through the model's first
 camera, which in every task is the agent's camera.
 """
@@ -37,7 +37,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import gymnasium
 import jax
@@ -105,66 +106,49 @@ def reset_views(env: Any, num_envs: int, image: bool, key: jax.Array) -> tuple[t
 
 def autoreset(env: Any, done: jax.Array, carry: tuple[State, jax.Array]) -> tuple[State, jax.Array]:
     """`carry` (states, keys) with the envs flagged in `done` replaced by fresh initial states."""
-    fresh = batched_reset(env, carry[1])
-    pick = lambda new, old: jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)  # noqa: E731
-    return jax.tree.map(pick, fresh, carry)
+    def pick(new: jax.Array, old: jax.Array) -> jax.Array:
+        return jnp.where(done.reshape(done.shape + (1,) * (old.ndim - 1)), new, old)
+
+    return jax.tree.map(pick, batched_reset(env, carry[1]), carry)
 
 
 # Pytrees cross the jit boundary packed. Every argument and result of a jitted call costs
 # microseconds of dispatch and conversion on the CPU, and an MJX state has ~95 arrays, which
 # cost more than the physics of a small batch; so the state, and what the host reads, travel
-# as one [num_envs, k] buffer per element width: the leaves of each dtype are concatenated
-# and the result bit-cast (not converted) into the buffer of its width (uint32 holds float32,
-# int32 and keys; uint8 holds bools and images).
+# as one [num_envs, k] buffer per dtype.
 @dataclasses.dataclass(frozen=True)
 class Packing:
-    """Where the leaves of a batched pytree live.
-
-    slots: per leaf (dtype, first column, end column, per-env shape) within its dtype's segment;
-    segments: per dtype (dtype, buffer, first column, end column) within the buffer.
-    """
+    """Where each leaf of a batched pytree lives: (dtype, first column, end column, per-env shape)."""
 
     treedef: Any
     slots: tuple[tuple[str, int, int, tuple[int, ...]], ...]
-    segments: tuple[tuple[str, str, int, int], ...]
 
 
 def packing_of(tree: Any) -> Packing:
     """The packing of a batched pytree (arrays or shape structs with a leading env axis)."""
     leaves, treedef = jax.tree.flatten(tree)
-    sizes: dict[str, int] = {}
+    ends: dict[str, int] = {}
     slots = []
     for leaf in leaves:
         dtype = np.dtype(leaf.dtype).name
-        start = sizes.get(dtype, 0)
-        sizes[dtype] = start + math.prod(leaf.shape[1:])
-        slots.append((dtype, start, sizes[dtype], tuple(leaf.shape[1:])))
-    widths: dict[str, int] = {}
-    segments = []
-    for dtype, size in sizes.items():
-        lane = f"uint{8 * np.dtype(dtype).itemsize}"
-        start = widths.get(lane, 0)
-        widths[lane] = start + size
-        segments.append((dtype, lane, start, widths[lane]))
-    return Packing(treedef, tuple(slots), tuple(segments))
+        start = ends.get(dtype, 0)
+        ends[dtype] = start + math.prod(leaf.shape[1:])
+        slots.append((dtype, start, ends[dtype], tuple(leaf.shape[1:])))
+    return Packing(treedef, tuple(slots))
 
 
 def pack(tree: Any, packing: Packing) -> dict[str, jax.Array]:
-    """The leaves of batched `tree` as one [num_envs, k] buffer per element width."""
-    by_dtype: dict[str, list[jax.Array]] = {}
+    """The leaves of batched `tree` as one [num_envs, k] buffer per dtype."""
+    columns: dict[str, list[jax.Array]] = {}
     for leaf, (dtype, *_) in zip(jax.tree.leaves(tree), packing.slots):
-        by_dtype.setdefault(dtype, []).append(leaf.reshape(leaf.shape[0], -1))
-    lanes: dict[str, list[jax.Array]] = {}
-    for dtype, lane, _, _ in packing.segments:
-        lanes.setdefault(lane, []).append(jnp.concatenate(by_dtype[dtype], axis=1).view(lane))
-    return {lane: jnp.concatenate(parts, axis=1) for lane, parts in lanes.items()}
+        columns.setdefault(dtype, []).append(leaf.reshape(leaf.shape[0], -1))
+    return {dtype: jnp.concatenate(parts, axis=1) for dtype, parts in columns.items()}
 
 
 def unpack(buffers: dict[str, Any], packing: Packing) -> Any:
     """The pytree that `pack` packed into `buffers` (jax or numpy arrays; numpy gives views)."""
     n = next(iter(buffers.values())).shape[0]
-    segment = {dtype: buffers[lane][:, start:end].view(dtype) for dtype, lane, start, end in packing.segments}
-    leaves = [segment[dtype][:, start:end].reshape((n, *shape)) for dtype, start, end, shape in packing.slots]
+    leaves = [buffers[dtype][:, start:end].reshape((n, *shape)) for dtype, start, end, shape in packing.slots]
     return jax.tree.unflatten(packing.treedef, leaves)
 
 
@@ -187,7 +171,8 @@ def packed_step(env: Any, image: bool, packings: tuple[Packing, Packing], buffer
     done = stepped.done
     # every env of a batch ends on the same step (same T, reset together): one branch per batch
     carry = jax.lax.cond(jnp.any(done), functools.partial(autoreset, env, done), lambda c: c, (stepped, keys))
-    views = {"now": host_view(carry[0], stepped.reward, done, image), "final": host_view(stepped, stepped.reward, done, image)}
+    views = {"now": host_view(carry[0], stepped.reward, done, image),
+             "final": host_view(stepped, stepped.reward, done, image)}
     return pack(carry, packings[0]), pack(views, packings[1])
 
 
@@ -219,9 +204,9 @@ def batched(name: str, num_envs: int, image: bool) -> Batched:
 
 
 def to_host(buffers: dict[str, jax.Array], packing: Packing) -> dict[str, Any]:
-    """Packed device buffers as the numpy pytree they hold: one transfer, one writable copy per
-    buffer (fresh on every call), its leaves views of those copies."""
-    return unpack({k: np.array(v) for k, v in jax.device_get(buffers).items()}, packing)
+    """Packed device buffers as the numpy pytree they hold: one writable host copy per buffer
+    (fresh on every call), its leaves views of those copies."""
+    return unpack({k: np.array(v) for k, v in buffers.items()}, packing)
 
 
 def vector_info(is_success: np.ndarray) -> dict[str, np.ndarray]:
@@ -309,7 +294,8 @@ class VectorGoalEnv(VectorEnv):
 
     def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any = None) -> np.ndarray:
         """The task's sparse reward for goals batched over leading axes (numpy in and out)."""
-        return np.asarray(self._batched.reward(np.asarray(achieved_goal, np.float32), np.asarray(desired_goal, np.float32)))
+        achieved_goal, desired_goal = np.asarray(achieved_goal, np.float32), np.asarray(desired_goal, np.float32)
+        return np.asarray(self._batched.reward(achieved_goal, desired_goal))
 
     def render(self) -> tuple[np.ndarray, ...] | None:
         """(frame,): the first env drawn by `mujoco.Renderer`, uint8 [480, 640, 3]; None
@@ -372,7 +358,8 @@ class GoalEnv(gymnasium.Env):
         return self.vector.compute_reward(achieved_goal, desired_goal, info)
 
     def render(self) -> np.ndarray | None:
-        """The env drawn by `mujoco.Renderer`, uint8 [480, 640, 3]; None unless render_mode is "rgb_array"."""
+        """The env drawn by `mujoco.Renderer`, uint8 [480, 640, 3] (after a truncation: the next
+        episode's start); None unless render_mode is "rgb_array"."""
         frames = self.vector.render()
         return None if frames is None else frames[0]
 

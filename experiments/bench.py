@@ -84,6 +84,30 @@ def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int
     return config.cycles_per_epoch * num_envs * env.episode_length / seconds
 
 
+def sharded_training(name: str, agent: str, seeds: int, n_devices: int, repeats: int) -> dict[str, float]:
+    """Training throughput of `seeds` vmapped seeds of the env's preset, sharded over the first
+    `n_devices` devices: env steps per second with learning, and seconds per epoch."""
+    spec = agent_spec(agent)
+    preset = env_preset(name, agent)
+    config = TrainConfig(**preset.get("train", {}))
+    env = envs_mjx.make(name, render=spec.uses_image)
+    devices = jax.devices()[:n_devices]
+    init, epoch = make_seeded(*make_train(env, spec, NetworkConfig(**preset.get("network", {})), config), devices)
+    start = time.perf_counter()
+    holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), seeds))}
+
+    def one_epoch():
+        holder["state"], metrics = epoch(holder["state"])
+        jax.block_until_ready(metrics)
+
+    one_epoch()  # compiles
+    compile_seconds = time.perf_counter() - start
+    seconds = _timed(one_epoch, repeats)
+    steps = seeds * config.cycles_per_epoch * config.num_envs * env.episode_length
+    return {"devices": n_devices, "seeds": seeds, "epoch_seconds": seconds, "env_steps_per_second": steps / seconds,
+            "compile_and_first_epoch_seconds": compile_seconds}
+
+
 def native_steps_per_second(name: str, num_envs: int, steps: int, repeats: int, threads: int = 2) -> float:
     """Native MuJoCo through `mujoco.rollout` with `threads` threads, random controls."""
     import mujoco
@@ -118,10 +142,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip-train", action="store_true", help="skip the training-epoch figures")
     parser.add_argument("--skip-native", action="store_true", help="skip native MuJoCo")
     parser.add_argument("--json", default="", help="also write the figures to this JSON file")
+    parser.add_argument("--devices", nargs="+", type=int, default=None,
+                        help="instead: training throughput of --seeds seeds of the first env's preset sharded over "
+                        "each of these device counts (e.g. 1 2 4), with --agent")
+    parser.add_argument("--seeds", type=int, default=8, help="seeds of the --devices benchmark")
     args = parser.parse_args(argv)
 
     device = jax.devices()[0]
     print(f"device: {device.platform} ({device.device_kind}), {jax.device_count()} device(s)")
+    if args.devices:
+        scaling(args)
+        return
     rows = []
     for name in args.envs:
         for n in args.num_envs:
@@ -142,6 +173,28 @@ def main(argv: list[str] | None = None) -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": str(device), "rows": rows}, f, indent=2)
+
+
+def scaling(args: argparse.Namespace) -> None:
+    """The --devices benchmark: one row per device count, with the speed-up over the first row."""
+    bad = [n for n in args.devices if not 1 <= n <= jax.device_count() or args.seeds % n]
+    if bad:
+        raise SystemExit(f"error: --devices {bad[0]}: must be between 1 and the {jax.device_count()} visible "
+                         f"device(s) and divide --seeds {args.seeds}")
+    rows = []
+    for n in args.devices:
+        rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats))
+        print(json.dumps(rows[-1]), flush=True)
+    base = rows[0]
+    print(f"\n{args.envs[0]} {args.agent}, {args.seeds} seeds: training throughput by device count\n")
+    print("| devices | s / epoch | env steps / s (with learning) | speed-up | scaling efficiency |\n| --- | --- | --- | --- | --- |")
+    for row in rows:
+        speedup = row["env_steps_per_second"] / base["env_steps_per_second"]
+        print(f"| {row['devices']} | {row['epoch_seconds']:.2f} | {row['env_steps_per_second']:,.0f} | {speedup:.2f}× | "
+              f"{speedup * base['devices'] / row['devices']:.0%} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"device": str(jax.devices()[0]), "rows": rows}, f, indent=2)
 
 
 if __name__ == "__main__":

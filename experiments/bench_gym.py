@@ -1,43 +1,46 @@
 """Cost of the Gymnasium adapter (envs_mjx.gym) per env step, against native MuJoCo.
 
     python -m experiments.bench_gym                            # planar_reach, 1/16/64/256 envs
-    python -m experiments.bench_gym --num-envs 64 --repeats 5
+    python -m experiments.bench_gym --num-envs 64 --repeats 9
 
 One env step is one 0.04 s control period. The adapter figure is the wall time of
-`VectorGoalEnv.step` (numpy actions in, numpy observations, rewards and infos out,
-state-only observations, autoreset included) divided by the number of envs it steps; the
-yardstick is native MuJoCo stepping one env (`mujoco.mj_step`, the env's `n_substeps`
-substeps with random controls). Each figure is the median of `--repeats` timed runs of
-`--steps` steps after a warm-up (compilation excluded); it prints a Markdown table.
+`VectorGoalEnv.step` (numpy actions in; numpy observations, rewards and infos out;
+state-only observations; autoreset included) divided by the number of envs it steps. The
+yardstick is native MuJoCo stepping one env: `mujoco.mj_step` for the env's `n_substeps`
+substeps with random controls. Each figure is the median over `--repeats` rounds of
+`--steps` steps after a warm-up (compilation excluded); every round times every
+configuration once, so that all of them see the same load on a shared machine.
 """
 
 from __future__ import annotations
 
 import argparse
+import statistics
+import time
+from collections.abc import Callable
 
 import mujoco
 import numpy as np
 
 import envs_mjx
 from envs_mjx.gym import VectorGoalEnv
-from experiments.bench import _timed
 
 
-def adapter_ms_per_env_step(name: str, num_envs: int, steps: int, repeats: int) -> float:
-    """Milliseconds per env step of `VectorGoalEnv.step` at `num_envs` envs, random actions."""
+def adapter_steps(name: str, num_envs: int, steps: int) -> Callable[[], None]:
+    """A function that runs `steps` steps of a reset `VectorGoalEnv` with random actions."""
     envs = VectorGoalEnv(name, num_envs)
     envs.reset(seed=0)
-    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (steps, num_envs, envs.env.action_size)).astype(np.float32)
+    actions = np.random.default_rng(0).uniform(-1.0, 1.0, (steps, *envs.action_space.shape)).astype(np.float32)
 
     def run():
         for action in actions:
             envs.step(action)
 
-    return 1e3 * _timed(run, repeats) / (steps * num_envs)
+    return run
 
 
-def native_ms_per_env_step(name: str, steps: int, repeats: int) -> float:
-    """Milliseconds per env step of native MuJoCo on one env: `n_substeps` mj_steps per step."""
+def native_steps(name: str, steps: int) -> Callable[[], None]:
+    """A function that runs `steps` control periods of native MuJoCo on one env, random controls."""
     env = envs_mjx.make(name, render=False)
     model, data = env.mj_model, mujoco.MjData(env.mj_model)
     low, high = model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1]
@@ -49,7 +52,20 @@ def native_ms_per_env_step(name: str, steps: int, repeats: int) -> float:
             data.ctrl[:] = ctrl
             mujoco.mj_step(model, data, nstep=env.n_substeps)
 
-    return 1e3 * _timed(run, repeats) / steps
+    return run
+
+
+def interleaved_medians(runs: dict[str, Callable[[], None]], repeats: int) -> dict[str, float]:
+    """Median seconds of each run over `repeats` rounds, each round timing every run once,
+    after one untimed warm-up round (which compiles)."""
+    times: dict[str, list[float]] = {key: [] for key in runs}
+    for round_ in range(repeats + 1):
+        for key, run in runs.items():
+            start = time.perf_counter()
+            run()
+            if round_:
+                times[key].append(time.perf_counter() - start)
+    return {key: statistics.median(values) for key, values in times.items()}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -58,17 +74,21 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--env", default="planar_reach", choices=envs_mjx.names())
     parser.add_argument("--num-envs", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--steps", type=int, default=100, help="env steps per timed run")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per figure (median)")
+    parser.add_argument("--repeats", type=int, default=7, help="timed rounds (median)")
     args = parser.parse_args(argv)
-    if min(args.num_envs) < 1 or args.steps < 1 or args.repeats < 1:
-        parser.error(f"--num-envs {args.num_envs}, --steps {args.steps}, --repeats {args.repeats}: must be >= 1")
+    for option, values in (("--num-envs", args.num_envs), ("--steps", [args.steps]), ("--repeats", [args.repeats])):
+        if min(values) < 1:
+            parser.error(f"{option} {min(values)}: must be >= 1")
 
-    native = native_ms_per_env_step(args.env, args.steps, args.repeats)
+    runs = {"native": native_steps(args.env, args.steps)}
+    runs.update({n: adapter_steps(args.env, n, args.steps) for n in args.num_envs})
+    seconds = interleaved_medians(runs, args.repeats)
+    native = 1e3 * seconds.pop("native") / args.steps
     print(f"| {args.env} | envs | ms per env step | vs native MuJoCo |\n| --- | --- | --- | --- |")
-    print(f"| native `mujoco.mj_step` | 1 | {native:.4f} | 1.00 |", flush=True)
-    for n in args.num_envs:
-        cost = adapter_ms_per_env_step(args.env, n, args.steps, args.repeats)
-        print(f"| envs_mjx.gym.VectorGoalEnv | {n} | {cost:.4f} | {cost / native:.2f} |", flush=True)
+    print(f"| native `mujoco.mj_step` | 1 | {native:.4f} | 1.00 |")
+    for n, value in seconds.items():
+        cost = 1e3 * value / (args.steps * n)
+        print(f"| `envs_mjx.gym.VectorGoalEnv` | {n} | {cost:.4f} | {cost / native:.2f} |")
 
 
 if __name__ == "__main__":

@@ -256,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
         arms = make_arms(args, pass_through(rest), out)
         for arm in arms:  # every run's values, before the first one trains
-            validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names(), device_count=jax.device_count())
+            validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names())
     except ConfigError as err:
         return _error(err, run_cli.EXIT_BAD_INPUT)
     envs = {name: envs_mjx.make(name, render=True) for name in dict.fromkeys(arm.given["env"] for arm in arms)}

@@ -105,12 +105,6 @@ def test_resume_needs_a_run_dir(capsys, tmp_path):
     assert_refused(["--resume", "--quiet"], tmp_path / "none", ["--resume needs --run-dir"], capsys)
 
 
-def test_envs_must_split_evenly_over_devices(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(jax, "device_count", lambda: 3)
-    run_dir = tmp_path / "run"
-    assert_refused([*TINY, "--run-dir", str(run_dir)], run_dir, ["--num-envs 4", "device count 3"], capsys)
-
-
 def test_every_config_field_has_a_rule():
     fields = {f.name for cls in (RunConfig, TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)}
     assert fields == set(validate.RULES)
