@@ -395,8 +395,8 @@ def build(
         state, step = restore_state(env, run, train_cfg, net)
     else:
         state, step = init(keys), 0
-        if initialize is not None:
-            state = initialize(state)
+        if initialize is not None:  # its leaves may come from elsewhere: place them on the seed devices
+            state = jax.device_put(initialize(state), sharding)
     compiled = epoch.lower(state).compile()
     log(f"compiled in {time.time() - start:.1f} s")
     return compiled, state, step

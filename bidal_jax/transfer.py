@@ -14,10 +14,12 @@ checkpoint whose buffer files were deleted still serves):
 - the named subtrees, into both the online and the target networks (a fresh run's
   targets equal its online networks); all other networks keep their fresh
   initialisation and every optimiser starts fresh (Adam moments zero, step 0);
-- with the encoder, the normalisers it was trained with: the proprio normaliser's
-  statistics (count, total, total_sq, mean, std) when the encoder reads proprio, and the
-  goal normaliser (the goal means the same in both tasks, e.g. the cube position, G = 3).
-  Their running statistics then continue from the source's counts;
+- with an encoder that reads proprio, the proprio normaliser it was trained with
+  (count, total, total_sq, mean, std), whose running statistics then continue from the
+  source's counts. The goal normaliser is not carried: goals reach only the actor and
+  critic (UVFA's η), which start fresh, and the goal distributions differ (sliding's
+  goals lie on the table, lifting's 5-25 cm above it: sliding's height spread, at the
+  normaliser's floor, would clip every lift goal);
 - the encoder's proprio layer (`networks.PROPRIO_LAYER`) maps its input rows by segment
   name: the target's proprio segments must be a subset of the source's (same names and
   sizes, any order) and the target row of a feature is the source row of that feature.
@@ -151,8 +153,6 @@ def plan(run: RunConfig, target: Any, segments: Segments, make_env: Callable[...
     wanted = {"params": {name: saved["params"][name] for name in parts}}
     receiving = {"params": {name: target.params[name] for name in parts}}
     rows = None
-    if "encoder" in parts:
-        wanted["goal_norm"], receiving["goal_norm"] = saved["goal_norm"], target.goal_norm
     if PROPRIO_KERNEL in _leaves(receiving):
         try:
             source_segments = make_env(source.env, render=False).observation_spec.proprio_segments
@@ -181,7 +181,7 @@ def apply(p: Plan, state: Any, restored: dict) -> Any:
         return x[:, p.rows] if leaf_name(path) in ROW_MAPPED else x
 
     new = jax.tree_util.tree_map_with_path(select, restored)
-    norms = {name: normalizer.NormalizerState(**new[name]) for name in ("proprio_norm", "goal_norm") if name in new}
+    norms = {"proprio_norm": normalizer.NormalizerState(**new["proprio_norm"])} if "proprio_norm" in new else {}
     return state.replace(
         params={**state.params, **new["params"]},
         # copies: the epoch donates its input, and one buffer cannot be donated twice

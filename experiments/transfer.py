@@ -10,7 +10,7 @@ Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in 
   names a finished one (`--source-checkpoint` picks a step or "best"; default the latest);
 - `transfer/`: nicol_lift_reduced whose encoder and forward and inverse models (`--init-parts`)
   start from the source's (`bidal_jax/transfer.py`: seed i from the source's seed i, the proprio
-  rows matched by segment name, the normalisers carried along, optimisers fresh);
+  rows and the proprio normaliser matched by segment name, optimisers fresh);
 - `scratch/`: the same run from a fresh start: same seeds, epochs and settings.
 
 Faithful to the paper by default: no held starts (`exploration_starts` 0 in both arms);
@@ -41,8 +41,6 @@ import dataclasses
 import os
 import sys
 from typing import Any, Sequence
-
-import jax
 
 import envs_mjx
 from bidal_jax import checkpoint, config as config_lib, loop, transfer, validate
