@@ -44,3 +44,27 @@ def test_help_documents_every_option(capsys):
     for option in ("--env", "--agent", "--seeds", "--epochs", "--num-envs", "--run-dir", "--gamma", "--intrinsic-lambda",
                    "--latent-size", "--batch-size"):
         assert option in out, option
+
+
+def test_help_names_every_env_and_agent_and_each_default_once(capsys):
+    import envs_mjx
+    from bidal_jax.config import AGENTS
+
+    with pytest.raises(SystemExit):
+        run.main(["--help"])
+    text = capsys.readouterr().out
+    out = " ".join(text.split())  # argparse wraps lines
+    for name in (*envs_mjx.names(), *AGENTS):
+        assert name in out, name
+    options = text.split("\n  --")[1:]
+    assert all(option.count("(default:") <= 1 for option in options)
+    assert "(default: None)" not in out and "--num-envs NUM_ENVS" in out
+
+
+def test_print_config_shows_the_preset_and_the_command_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert run.main(["--env", "nicol_slide", "--seeds", "3", "--print-config"]) == 0
+    config = json.loads(capsys.readouterr().out)
+    assert config["train"]["num_envs"] == 512 and config["run"]["seeds"] == 3  # the nicol preset, then the option
+    assert config["train"]["exploration_starts"] == 0.0  # faithful to the paper: no held starts by default
+    assert os.listdir(tmp_path) == []
