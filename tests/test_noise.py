@@ -13,7 +13,7 @@ import pytest
 import envs_mjx
 from bidal_jax import acting, noise
 from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
-from bidal_jax.train import make_seeded, make_train
+from bidal_jax.train import make_seeded, make_train, seed_sharding
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 NOISY = dataclasses.replace(TINY, noise_segments="q")
@@ -75,8 +75,9 @@ def _train(env, config, kappas=None, epochs=2, count_traces=False):
     init, epoch = make_seeded(init, epoch)
     n = 1 if kappas is None else len(kappas)
     state = init(jax.random.split(jax.random.PRNGKey(0), n))
-    if kappas is not None:
-        state = state.replace(noise=state.noise.replace(kappa=jnp.asarray(kappas)))
+    if kappas is not None:  # as loop.build places an initialized state: on the seed devices
+        state = jax.device_put(state.replace(noise=state.noise.replace(kappa=jnp.asarray(kappas))),
+                               seed_sharding(jax.devices()[:1]))
     history = []
     for _ in range(epochs):
         state, metrics = epoch(state)
