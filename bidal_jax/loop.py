@@ -373,6 +373,10 @@ def restore_state(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfi
     """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default),
     placed on this process's seed devices (whatever device count wrote it); compiles nothing."""
     init, _, keys, sharding = _programs(env, run, train_cfg, net)
+    return _restore(run, init, keys, sharding, step)
+
+
+def _restore(run: RunConfig, init: Callable, keys: jax.Array, sharding, step: int | None = None):
     state, _, step = checkpoint.restore(os.path.join(run.run_dir, "checkpoints"), jax.eval_shape(init, keys), step)
     return jax.device_put(state, sharding), step
 
@@ -392,7 +396,7 @@ def build(
     devices = len(sharding.mesh.devices.flat)
     log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on {devices} device(s)) ...")
     if resume:
-        state, step = restore_state(env, run, train_cfg, net)
+        state, step = _restore(run, init, keys, sharding)
     else:
         state, step = init(keys), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the seed devices

@@ -14,6 +14,7 @@ import dataclasses
 import math
 from typing import Any, Callable, Iterable
 
+from bidal_jax import noise
 from bidal_jax.config import AGENTS, NetworkConfig, RunConfig, TrainConfig
 
 
@@ -144,8 +145,7 @@ def check(
 def check_env_support(train: TrainConfig, env: Any) -> None:
     """Raise `ConfigError` when `train` asks `env` for something it lacks (exploration starts,
     the proprio segments that get noise)."""
-    names = [n.strip() for n in train.noise_segments.split(",") if n.strip()]
-    unknown = [n for n in names if n not in env.observation_spec.segment_names]
+    unknown = [n for n in noise.parse_segments(train.noise_segments) if n not in env.observation_spec.segment_names]
     if unknown:
         raise ConfigError(
             f"{option('noise_segments')} {train.noise_segments}: env {env.name} has no segment {unknown[0]!r}; "

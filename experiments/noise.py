@@ -55,8 +55,9 @@ def train_agent(agent: str, run_dir: str, given: dict, runs: int, quiet: bool) -
     """Train (or resume, or skip when finished) one agent's 3 κ × `runs` program in `run_dir`."""
     given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(KAPPAS) * runs}
     ckpt_dir = os.path.join(run_dir, "checkpoints")
-    resume = checkpoint.latest_step(ckpt_dir) is not None
-    if resume and checkpoint.latest_step(ckpt_dir) >= given["epochs"]:
+    latest = checkpoint.latest_step(ckpt_dir)
+    resume = latest is not None
+    if resume and latest >= given["epochs"]:
         print(f"{agent}: finished ({run_dir}), skipped")
         return
     # a start that never reached its first checkpoint is started again (prepare refuses to
