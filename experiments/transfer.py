@@ -2,7 +2,7 @@
 from the representation of a sliding run.
 
     python -m experiments.transfer [--seeds 5] [--out results/transfer] [--source RUN_DIR]
-        [--source-epochs N] [--epochs N] [--held-starts] [any learner or network option of experiments.run]
+        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch] [any learner or network option of experiments.run]
 
 Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
 
@@ -28,7 +28,11 @@ which `wall_time` counts. The source's training time is not in the transfer arm'
 Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
 skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
 again. Runs are driven in-process through `bidal_jax.loop` (prepare, then train), in the order
-source, transfer, scratch, so that the transfer's checks run as early as they can.
+source, transfer, scratch, so that the transfer's checks run as early as they can. `--arms` trains
+only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
+scratch arm does not need the source), then `--arms transfer`; any of them writes the results
+of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
+whose checkpoints were deleted).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
@@ -53,6 +57,7 @@ PROG = "python -m experiments.transfer"
 SOURCE_ENV, TARGET_ENV, AGENT = "nicol_slide", "nicol_lift_reduced", "multimodal_bidal"
 HELD_STARTS = 0.5
 THRESHOLDS = (0.3, 0.5)
+ARMS = ("source", "transfer", "scratch")
 # what passes through to every run: the learner and network options (the exploration starts are
 # --held-starts, the same in both arms) and the checkpoint interval
 PASS_THROUGH = frozenset(
@@ -95,6 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
     parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
                         "training episodes with the cube held (a labelled variant; the paper has none)")
+    parser.add_argument("--arms", default=",".join(ARMS), help="the runs this command trains, a comma list of "
+                        f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
+                        "runs can be trained by separate processes at once; 'none' only writes the results")
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
@@ -111,6 +119,19 @@ def pass_through(argv: Sequence[str]) -> dict[str, Any]:
         hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
         raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
     return given
+
+
+def parse_arms(text: str) -> frozenset[str]:
+    """The arms named by --arms; ConfigError naming one that is not an arm."""
+    if text == "none":
+        return frozenset()
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    for name in names:
+        if name not in ARMS:
+            raise ConfigError(f"--arms {text}: unknown arm {name!r}; allowed: {', '.join(ARMS)}")
+    if not names:
+        raise ConfigError(f"--arms {text!r}: name at least one of {', '.join(ARMS)}, or none")
+    return frozenset(names)
 
 
 def source_dir(args: argparse.Namespace, out: str) -> str:
@@ -252,6 +273,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.last_n < 1:
             raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
+        train_names = parse_arms(args.arms)
         arms = make_arms(args, pass_through(rest), out)
         for arm in arms:  # every run's values, before the first one trains
             validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names())
@@ -262,7 +284,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = 0
     try:
         for arm in arms:
-            train_arm(arm, envs[arm.given["env"]], args.quiet)
+            if arm.name in train_names:
+                train_arm(arm, envs[arm.given["env"]], args.quiet)
     except (ConfigError, CheckpointError) as err:
         code = _error(err, run_cli.EXIT_BAD_INPUT)
     except loop.Diverged as err:

@@ -362,6 +362,17 @@ def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_p
     assert "| transfer | 2 | 1 | 100 |" in (out / "table.md").read_text()  # from whatever is there
 
 
+def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol):
+    out = tmp_path / "out"
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "scratch"]) == 0
+    assert no_nicol == [("prepare", str(out / "scratch"), False, True), ("train", str(out / "scratch"), False, False)]
+    shutil.rmtree(out / "scratch" / "checkpoints", ignore_errors=True)
+    _fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], 1)
+    shutil.rmtree(out / "transfer" / "checkpoints")  # results only: checkpoints are not needed
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
+    assert len(no_nicol) == 2 and "| transfer | 2 | 3 | 300 |" in (out / "table.md").read_text()
+
+
 def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
     args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
     arms = experiment.make_arms(args, experiment.pass_through(rest), "out")
@@ -382,6 +393,7 @@ def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
     (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
     (["--exploration-starts", "0.5"], "error: --exploration-starts: not passed through to the runs (use --held-starts)"),
     (["--num-envs", "0"], "error: --num-envs 0: must be a positive integer"),
+    (["--arms", "source,lift"], "error: --arms source,lift: unknown arm 'lift'; allowed: source, transfer, scratch"),
 ])
 def test_bad_experiment_options_are_refused_before_anything_runs(extra, expected, tmp_path, no_nicol, capsys):
     out = tmp_path / "out"
