@@ -27,8 +27,9 @@ which `wall_time` counts. The source's training time is not in the transfer arm'
 
 Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
 skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
-again. Runs are driven in-process through `bidal_jax.loop` (prepare, then train), in the order
-source, transfer, scratch, so that the transfer's checks run as early as they can. `--arms` trains
+again (`experiments/grid.py`). Runs are driven in-process through `bidal_jax.loop` (prepare,
+then train), in the order source, transfer, scratch, so that the transfer's checks run as early
+as they can. `--arms` trains
 only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
 scratch arm does not need the source), then `--arms transfer`; any of them writes the results
 of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
@@ -41,44 +42,21 @@ line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was s
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 from typing import Any, Sequence
 
-import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop, transfer, validate
-from bidal_jax.checkpoint import CheckpointError
-from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
-from bidal_jax.validate import ConfigError, option
-from experiments import plot, run as run_cli
+from bidal_jax import config as config_lib
+from bidal_jax.config import RunConfig
+from bidal_jax.validate import ConfigError
+from experiments import grid, plot, run as run_cli
+from experiments.grid import Arm
 
 PROG = "python -m experiments.transfer"
 SOURCE_ENV, TARGET_ENV, AGENT = "nicol_slide", "nicol_lift_reduced", "multimodal_bidal"
 HELD_STARTS = 0.5
 THRESHOLDS = (0.3, 0.5)
 ARMS = ("source", "transfer", "scratch")
-# what passes through to every run: the learner and network options (the exploration starts are
-# --held-starts, the same in both arms) and the checkpoint interval
-PASS_THROUGH = frozenset(
-    {f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)} - {"exploration_starts"}
-) | {"checkpoint_every"}
-
-
-@dataclasses.dataclass(frozen=True)
-class Arm:
-    """One run of the experiment: its name (source, transfer, scratch) and its config fields."""
-
-    name: str
-    given: dict[str, Any]
-
-    @property
-    def run_dir(self) -> str:
-        return self.given["run_dir"]
-
-    @property
-    def epochs(self) -> int:
-        return self.given["epochs"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -108,30 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def pass_through(argv: Sequence[str]) -> dict[str, Any]:
-    """The config fields of the options this command does not know itself, parsed as experiments.run
-    parses them; ConfigError for one that is not passed through."""
-    parser = run_cli.build_parser()
-    parser.prog = PROG
-    # unset options are None; flags (--quiet, --resume, ...) are False unless given
-    given = {k: v for k, v in vars(parser.parse_args(list(argv))).items() if v is not None and v is not False}
-    for name in sorted(set(given) - PASS_THROUGH):
-        hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
-        raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
-    return given
-
-
 def parse_arms(text: str) -> frozenset[str]:
-    """The arms named by --arms; ConfigError naming one that is not an arm."""
-    if text == "none":
-        return frozenset()
-    names = [name.strip() for name in text.split(",") if name.strip()]
-    for name in names:
-        if name not in ARMS:
-            raise ConfigError(f"--arms {text}: unknown arm {name!r}; allowed: {', '.join(ARMS)}")
-    if not names:
-        raise ConfigError(f"--arms {text!r}: name at least one of {', '.join(ARMS)}, or none")
-    return frozenset(names)
+    """The arms named by --arms ('none': no arm); ConfigError naming one that is not an arm."""
+    return frozenset() if text == "none" else frozenset(grid.parse_names(text, "--arms", "arm", ARMS))
 
 
 def source_dir(args: argparse.Namespace, out: str) -> str:
@@ -153,51 +110,6 @@ def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list
         given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
         arms.append(Arm(name, {**given, "epochs": config_lib.resolve(given)[0].epochs}))
     return arms
-
-
-def latest(arm: Arm) -> int | None:
-    """The epoch of the run's latest checkpoint (None: it has none)."""
-    return checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
-
-
-def status(arm: Arm) -> str:
-    """"done" (latest checkpoint at its epochs), "resume" (an earlier checkpoint) or "new" (none)."""
-    step = latest(arm)
-    return "new" if step is None else "done" if step >= arm.epochs else "resume"
-
-
-def plan_lines(arms: Sequence[Arm], envs: dict[str, Any]) -> list[str]:
-    """One line per run: what it is, its epochs and env steps per seed, and what this command does with it."""
-    lines = []
-    for arm in arms:
-        run, train, _ = config_lib.resolve(arm.given)
-        per_epoch = train.cycles_per_epoch * train.num_envs * envs[run.env].episode_length
-        source = f", parameters from {run.init_from}" if run.init_from else ""
-        lines.append(
-            f"{arm.name}: {run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}"
-            f"{source}; {run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed "
-            f"in {run.run_dir} [{status(arm)}" + (f", checkpoint at epoch {latest(arm)}]" if latest(arm) else "]")
-        )
-    return lines
-
-
-def train_arm(arm: Arm, env, quiet: bool) -> None:
-    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done."""
-    state = status(arm)
-    if state == "done":
-        print(f"{arm.name}: done ({arm.run_dir})")
-        return
-    resume = state == "resume"
-    configs = loop.prepare(arm.given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
-                           overwrite=not resume)
-    if not resume:  # a run stopped before its first checkpoint starts again
-        loop.delete_run_dir(arm.run_dir)
-    run = configs[0]
-    segments = env.observation_spec.proprio_segments
-    initialize = transfer.make_initializer(run, segments, envs_mjx.make) if run.init_from else None
-    row = loop.train(env, *configs, quiet=quiet, resume=resume, initialize=initialize)
-    print(f"{arm.name}:", end=" ")
-    run_cli.print_summary(run, row)
 
 
 def _cell(hit: plot.Reached | None) -> tuple[str, str]:
@@ -225,16 +137,9 @@ def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
     return "\n".join(lines)
 
 
-def _loaded(run_dir: str) -> dict | None:
-    try:
-        return plot.load_run(run_dir)
-    except plot.RunError:
-        return None
-
-
-def write_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
-    """success.png/.csv and table.md in `out` from the arms that have epochs; returns the table (None if none has)."""
-    runs = {arm.name: r for arm in arms if arm.name != "source" and (r := _loaded(arm.run_dir))}
+def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
+    """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
+    runs = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
     curves = plot.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
@@ -249,54 +154,30 @@ def write_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, la
         results_table(curves, last_n),
         "",
     ]
-    source = _loaded(source_dir)
+    source = grid.loaded(source_dir)
     if source is not None:
         notes.append(
             f"Source: {source['env']} {source['agent']} in {source_dir}, {len(source['epoch'])} epochs, "
             f"{source['env_steps'][-1]:,.0f} env steps per seed, {source['wall_time'][-1]:,.0f} s (not in the times "
             f"above); final seed-mean success {source['success'][-1].mean():.3f}."
         )
-    text = "\n".join(notes) + "\n"
-    with open(os.path.join(out, "table.md"), "w") as f:
-        f.write(text)
-    return text
-
-
-def _error(message: object, code: int) -> int:
-    print(f"error: {message}", file=sys.stderr)
-    return code
+    return "\n".join(notes) + "\n"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
-    out = args.out or ("results/transfer-held" if args.held_starts else "results/transfer")
+    out = grid.out_dir(args, "transfer")
     try:
-        if args.last_n < 1:
-            raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
         train_names = parse_arms(args.arms)
-        arms = make_arms(args, pass_through(rest), out)
-        for arm in arms:  # every run's values, before the first one trains
-            validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names())
+        arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(args, extra, out))
     except ConfigError as err:
-        return _error(err, run_cli.EXIT_BAD_INPUT)
-    envs = {name: envs_mjx.make(name, render=True) for name in dict.fromkeys(arm.given["env"] for arm in arms)}
-    print("\n".join(["plan:", *plan_lines(arms, envs)]), flush=True)
-    code = 0
-    try:
-        for arm in arms:
-            if arm.name in train_names:
-                train_arm(arm, envs[arm.given["env"]], args.quiet)
-    except (ConfigError, CheckpointError) as err:
-        code = _error(err, run_cli.EXIT_BAD_INPUT)
-    except loop.Diverged as err:
-        code = _error(err, run_cli.EXIT_DIVERGED)
-    except loop.Interrupted as stop:
-        print(f"{stop}; run the same command again to continue", file=sys.stderr)
-        code = stop.exit_code
+        return grid.error(err, run_cli.EXIT_BAD_INPUT)
+    envs = grid.make_envs(arms)
+    print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
+    code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
     variant = ", held starts" if args.held_starts else ""
     title = f"{TARGET_ENV}: from scratch and from {SOURCE_ENV}'s representation ({args.seeds} seeds{variant})"
-    table = write_results(out, arms, source_dir(args, out), title, args.last_n)
-    print(f"\n{table}\nwritten to {out}" if table else "no epochs yet: nothing to plot")
+    grid.write_table(out, plot_results(out, arms, source_dir(args, out), title, args.last_n))
     return code
 
 

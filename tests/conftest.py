@@ -3,7 +3,62 @@
 import os
 
 import jax
+import pytest
 
 jax.config.update("jax_compilation_cache_dir", os.path.join(os.path.dirname(os.path.dirname(__file__)), ".jax_cache"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# ----- experiment scripts (experiments/grid.py) without training ----------------------------------------
+
+
+def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal") -> None:
+    """A run directory as loop.train writes it (config.json, metrics.csv), with an (empty) checkpoint
+    step unless `checkpoint_epoch` is None. `rows`: per epoch, each seed's eval success; every
+    epoch is 100 env steps per seed and 10 s of wall time."""
+    import csv
+    import json
+
+    seeds = len(rows[0])
+    os.makedirs(run_dir if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
+    with open(os.path.join(run_dir, "config.json"), "w") as f:
+        json.dump({"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}, f)
+    with open(os.path.join(run_dir, "metrics.csv"), "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["epoch", "eval_success", *(f"eval_success_seed{i}" for i in range(seeds)), "env_steps_total",
+                         "wall_time"])
+        for epoch, success in enumerate(rows, start=1):
+            writer.writerow([epoch, sum(success) / seeds, *success, 100 * seeds * epoch, 10.0 * epoch])
+
+
+@pytest.fixture
+def fake_run():
+    """`write_fake_run`: a hand-written run directory."""
+    return write_fake_run
+
+
+@pytest.fixture
+def no_nicol(monkeypatch):
+    """Envs that only tell their episode length, and a record of the runs prepared and trained."""
+    import types
+
+    import envs_mjx
+    from bidal_jax import config as config_lib, loop
+
+    calls = []
+    monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(
+        episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=())))
+
+    def prepare(given, resume, overwrite, **kwargs):
+        calls.append(("prepare", given["run_dir"], resume, overwrite))
+        return config_lib.resolve(given)
+
+    def train(env, run_cfg, *configs, resume, initialize, **kwargs):
+        assert not os.path.exists(run_cfg.run_dir) or resume  # a run without a checkpoint was deleted first
+        calls.append(("train", run_cfg.run_dir, resume, initialize is not None))
+        return {}
+
+    monkeypatch.setattr(loop, "prepare", prepare)
+    monkeypatch.setattr(loop, "train", train)
+    return calls

@@ -13,7 +13,6 @@ import dataclasses
 import json
 import os
 import shutil
-import types
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +24,7 @@ import envs_mjx
 from bidal_jax import checkpoint, config as config_lib, loop, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
-from experiments import run, transfer as experiment
+from experiments import grid, run, transfer as experiment
 
 NO_QDOT, RENAMED = "planar_reach_noqdot", "planar_reach_renamed"
 SOURCE_SEEDS, SEEDS = 3, 2
@@ -292,43 +291,10 @@ FAKE = {
 EXPERIMENT = ["--seeds", "2", "--epochs", "3", "--source-epochs", "2", "--last-n", "2", "--quiet"]
 
 
-def _fake_run(run_dir, env, rows, checkpoint_epoch):
-    """A run directory as loop.train writes it (config.json, metrics.csv), with an (empty) checkpoint step."""
-    os.makedirs(os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
-    with open(os.path.join(run_dir, "config.json"), "w") as f:
-        json.dump({"run": {"env": env, "agent": "multimodal_bidal", "seeds": 2}, "train": {}, "network": {}}, f)
-    with open(os.path.join(run_dir, "metrics.csv"), "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["epoch", "eval_success", "eval_success_seed0", "eval_success_seed1", "env_steps_total", "wall_time"])
-        for epoch, (a, b) in enumerate(rows, start=1):
-            writer.writerow([epoch, (a + b) / 2, a, b, 200 * epoch, 10.0 * epoch])
-
-
-@pytest.fixture
-def no_nicol(monkeypatch):
-    """Envs that only tell their episode length, and a record of the runs prepared and trained."""
-    calls = []
-    monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(
-        episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=())))
-
-    def prepare(given, resume, overwrite, **kwargs):
-        calls.append(("prepare", given["run_dir"], resume, overwrite))
-        return config_lib.resolve(given)
-
-    def train(env, run_cfg, *configs, resume, initialize, **kwargs):
-        assert not os.path.exists(run_cfg.run_dir) or resume  # a run without a checkpoint was deleted first
-        calls.append(("train", run_cfg.run_dir, resume, initialize is not None))
-        return {}
-
-    monkeypatch.setattr(loop, "prepare", prepare)
-    monkeypatch.setattr(loop, "train", train)
-    return calls
-
-
-def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_nicol, capsys):
+def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_nicol, fake_run, capsys):
     out = tmp_path / "out"
     for name, rows in FAKE.items():
-        _fake_run(str(out / name), "nicol_slide" if name == "source" else "nicol_lift_reduced", rows, len(rows))
+        fake_run(str(out / name), "nicol_slide" if name == "source" else "nicol_lift_reduced", rows, len(rows))
     assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 0
     assert no_nicol == []
     printed = capsys.readouterr().out
@@ -347,10 +313,10 @@ def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_n
         assert {r["label"] for r in csv.DictReader(f)} == {"transfer", "scratch"}
 
 
-def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_path, no_nicol, capsys):
+def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_path, no_nicol, fake_run, capsys):
     out = tmp_path / "out"
-    _fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)  # done
-    _fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"][:1], 1)  # interrupted at epoch 1 of 3
+    fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)  # done
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"][:1], 1)  # interrupted at epoch 1 of 3
     os.makedirs(out / "scratch")
     (out / "scratch" / "metrics.csv").write_text("epoch\n")  # stopped before its first checkpoint
     assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 0
@@ -362,12 +328,12 @@ def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_p
     assert "| transfer | 2 | 1 | 100 |" in (out / "table.md").read_text()  # from whatever is there
 
 
-def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol):
+def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol, fake_run):
     out = tmp_path / "out"
     assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "scratch"]) == 0
     assert no_nicol == [("prepare", str(out / "scratch"), False, True), ("train", str(out / "scratch"), False, False)]
     shutil.rmtree(out / "scratch" / "checkpoints", ignore_errors=True)
-    _fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], 1)
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], 1)
     shutil.rmtree(out / "transfer" / "checkpoints")  # results only: checkpoints are not needed
     assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
     assert len(no_nicol) == 2 and "| transfer | 2 | 3 | 300 |" in (out / "table.md").read_text()
@@ -375,7 +341,7 @@ def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_
 
 def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
     args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
-    arms = experiment.make_arms(args, experiment.pass_through(rest), "out")
+    arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
     assert [a.name for a in arms] == ["source", "transfer", "scratch"]
     source, moved, scratch = (a.given for a in arms)
     assert (source["env"], source["epochs"], source["num_envs"]) == ("nicol_slide", 100, 64)
@@ -384,7 +350,7 @@ def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
         k: v for k, v in scratch.items() if k != "run_dir"}
     assert (scratch["exploration_starts"], scratch["seeds"], moved["init_from"]) == (0.5, 5, "out/source")
     args, rest = experiment.build_parser().parse_known_args(["--source", "runs/slide", "--source-checkpoint", "best"])
-    arms = experiment.make_arms(args, experiment.pass_through(rest), "out")
+    arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
     assert [a.name for a in arms] == ["transfer", "scratch"] and arms[0].given["init_from"] == "runs/slide:best"
     assert arms[1].given["exploration_starts"] == 0.0
 

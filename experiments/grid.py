@@ -1,0 +1,184 @@
+"""Runs of an experiment script, trained one after another and resumable (experiments.transfer,
+experiments.curves).
+
+An experiment is a list of `Arm`s: a name and the config fields of one run (`run_dir` and
+`epochs` resolved). `status` says what running it again does: "done" (its latest checkpoint is
+at its epochs: skipped), "resume" (an earlier checkpoint: continued from it) or "new" (no
+checkpoint: its directory is deleted and it starts again). `train_arms` trains them in-process
+through `bidal_jax.loop` (prepare, then train) and returns the exit code of experiments.run:
+0 done; 2 bad config or checkpoint (one `error: ...` line); 3 diverged; 130 and 143 stopped by
+SIGINT and SIGTERM (a checkpoint was saved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from typing import Any, Callable, Sequence
+
+import envs_mjx
+from bidal_jax import checkpoint, config as config_lib, loop, transfer, validate
+from bidal_jax.checkpoint import CheckpointError
+from bidal_jax.config import NetworkConfig, TrainConfig
+from bidal_jax.validate import ConfigError, option
+from experiments import plot, run as run_cli
+
+# what passes through to every run: the learner and network options (the exploration starts are
+# each experiment's --held-starts) and the checkpoint interval
+PASS_THROUGH = frozenset(
+    {f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)} - {"exploration_starts"}
+) | {"checkpoint_every"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Arm:
+    """One run of an experiment: its name and its config fields."""
+
+    name: str
+    given: dict[str, Any]
+
+    @property
+    def run_dir(self) -> str:
+        return self.given["run_dir"]
+
+    @property
+    def epochs(self) -> int:
+        return self.given["epochs"]
+
+
+def error(message: object, code: int) -> int:
+    """Print the one-line `error: ...` and return the exit code."""
+    print(f"error: {message}", file=sys.stderr)
+    return code
+
+
+def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
+    """The config fields of the options an experiment `prog` does not know itself, parsed as
+    experiments.run parses them; ConfigError for one that is not passed through."""
+    parser = run_cli.build_parser()
+    parser.prog = prog
+    # unset options are None; flags (--quiet, --resume, ...) are False unless given
+    given = {k: v for k, v in vars(parser.parse_args(list(argv))).items() if v is not None and v is not False}
+    for name in sorted(set(given) - PASS_THROUGH):
+        hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
+        raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
+    return given
+
+
+def parse_names(text: str, flag: str, kind: str, allowed: Sequence[str]) -> tuple[str, ...]:
+    """The names of a comma list option (`--tasks a,b`), in the order given; ConfigError naming
+    one that is not allowed, or an empty list."""
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    for name in names:
+        if name not in allowed:
+            raise ConfigError(f"{flag} {text}: unknown {kind} {name!r}; allowed: {', '.join(allowed)}")
+    if not names:
+        raise ConfigError(f"{flag} {text!r}: name at least one of {', '.join(allowed)}")
+    return tuple(dict.fromkeys(names))
+
+
+def out_dir(args: argparse.Namespace, name: str) -> str:
+    """--out, or results/NAME (results/NAME-held for the --held-starts variant)."""
+    return args.out or os.path.join("results", f"{name}-held" if args.held_starts else name)
+
+
+def checked_arms(args: argparse.Namespace, rest: Sequence[str], prog: str,
+                 make_arms: Callable[[dict[str, Any]], list[Arm]]) -> list[Arm]:
+    """An experiment's runs, made by `make_arms` from the options passed through (`pass_through`),
+    with --last-n and every run's values checked before the first one trains; ConfigError for a bad one."""
+    if args.last_n < 1:
+        raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
+    arms = make_arms(pass_through(rest, prog))
+    for arm in arms:
+        validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names())
+    return arms
+
+
+def latest(arm: Arm) -> int | None:
+    """The epoch of the run's latest checkpoint (None: it has none)."""
+    return checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
+
+
+def status(arm: Arm) -> str:
+    """"done" (latest checkpoint at its epochs), "resume" (an earlier checkpoint) or "new" (none)."""
+    step = latest(arm)
+    return "new" if step is None else "done" if step >= arm.epochs else "resume"
+
+
+def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
+    """Arm name -> its env, rendering only for agents that see images; one env per kind is shared."""
+    made: dict[tuple[str, bool], Any] = {}
+    envs = {}
+    for arm in arms:
+        key = (arm.given["env"], config_lib.agent_spec(arm.given["agent"]).uses_image)
+        if key not in made:
+            made[key] = envs_mjx.make(key[0], render=key[1])
+        envs[arm.name] = made[key]
+    return envs
+
+
+def plan_line(arm: Arm, env) -> str:
+    """What the run is, its epochs and env steps per seed, and what training does with it."""
+    run, train, _ = config_lib.resolve(arm.given)
+    per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
+    source = f", parameters from {run.init_from}" if run.init_from else ""
+    step = latest(arm)
+    return (
+        f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
+        f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
+        f"[{status(arm)}" + (f", checkpoint at epoch {step}]" if step else "]")
+    )
+
+
+def train_arm(arm: Arm, env, quiet: bool) -> None:
+    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done."""
+    state = status(arm)
+    if state == "done":
+        print(f"{arm.name}: done ({arm.run_dir})")
+        return
+    resume = state == "resume"
+    configs = loop.prepare(arm.given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
+                           overwrite=not resume)
+    if not resume:  # a run stopped before its first checkpoint starts again
+        loop.delete_run_dir(arm.run_dir)
+    run = configs[0]
+    segments = env.observation_spec.proprio_segments
+    initialize = transfer.make_initializer(run, segments, envs_mjx.make) if run.init_from else None
+    row = loop.train(env, *configs, quiet=quiet, resume=resume, initialize=initialize)
+    print(f"{arm.name}:", end=" ")
+    run_cli.print_summary(run, row)
+
+
+def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
+    """Train the runs in order (`train_arm`) until one fails or is stopped; the exit code."""
+    try:
+        for arm in arms:
+            train_arm(arm, envs[arm.name], quiet)
+    except (ConfigError, CheckpointError) as err:
+        return error(err, run_cli.EXIT_BAD_INPUT)
+    except loop.Diverged as err:
+        return error(err, run_cli.EXIT_DIVERGED)
+    except loop.Interrupted as stop:
+        print(f"{stop}; run the same command again to continue", file=sys.stderr)
+        return stop.exit_code
+    return 0
+
+
+def loaded(run_dir: str) -> dict | None:
+    """The run's metrics and config (`plot.load_run`), or None while it has no epochs."""
+    try:
+        return plot.load_run(run_dir)
+    except plot.RunError:
+        return None
+
+
+def write_table(out: str, text: str | None) -> None:
+    """Write `text` to OUT/table.md and print it; None: no run has epochs yet."""
+    if text is None:
+        print("no epochs yet: nothing to plot")
+        return
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write(text)
+    print(f"\n{text}\nwritten to {out}")
