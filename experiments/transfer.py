@@ -145,7 +145,7 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
     curves = plot.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
     plot.plot(curves, os.path.join(out, "success"), title=title)
     notes = [
-        f"# {title}",
+        f"# {TARGET_ENV}: {title}",
         "",
         "Success is the seed mean of each epoch's eval success; a threshold is reached at the first epoch whose "
         "mean is at least it. Times are each run's `wall_time` (its compilation included, no persistent "
@@ -176,7 +176,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
     code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
     variant = ", held starts" if args.held_starts else ""
-    title = f"{TARGET_ENV}: from scratch and from {SOURCE_ENV}'s representation ({args.seeds} seeds{variant})"
+    title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     grid.write_table(out, plot_results(out, arms, source_dir(args, out), title, args.last_n))
     return code
 

@@ -64,7 +64,9 @@ def test_reduced_lift_keeps_exactly_the_28_named_features(lift, lift_resets):
     small = jax.jit(reduced.reset)(jax.random.split(key, N_RESETS)[0])
     spec = lift.observation_spec
     expected = np.concatenate([np.asarray(full.obs["proprio"][spec.segment_slice(n)]) for n in REDUCED_NAMES])
-    np.testing.assert_array_equal(np.asarray(small.obs["proprio"]), expected)
+    # a vmapped and an unbatched reset are two XLA programs: equal up to float rounding (the
+    # settled velocities, ~1e-7, differ by ~3e-8); a wrong or shifted segment differs by far more
+    np.testing.assert_allclose(np.asarray(small.obs["proprio"]), expected, rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(np.asarray(small.obs["desired_goal"]), np.asarray(full.obs["desired_goal"]))
 
 

@@ -108,11 +108,14 @@ def test_one_traced_epoch_serves_every_kappa(noisy_runs):
     np.testing.assert_allclose(newest[2].std(axis=0), KAPPAS[2] * sigma[2], rtol=0.25)
 
 
-def test_kappa_zero_is_bit_identical_to_a_run_without_noise(env, noisy_runs):
+def test_kappa_zero_equals_a_run_without_noise(env, noisy_runs):
+    # two different XLA programs (with and without the noise code): equal up to float rounding,
+    # not bit for bit (XLA:CPU at optimisation level 1 orders some sums differently); any noise
+    # reaching the κ = 0 run would move these by far more than the tolerance
     plain_state, plain, _ = _train(env, TINY)
     noisy_state, noisy, _ = noisy_runs
     for before, after in zip(plain, noisy):
         for key, value in before.items():
-            np.testing.assert_array_equal(np.asarray(value)[0], np.asarray(after[key])[0], err_msg=key)
+            np.testing.assert_allclose(np.asarray(value)[0], np.asarray(after[key])[0], rtol=1e-5, atol=1e-7, err_msg=key)
     for a, b in zip(jax.tree.leaves(plain_state.params), jax.tree.leaves(noisy_state.params)):
-        np.testing.assert_array_equal(np.asarray(a)[0], np.asarray(b)[0])
+        np.testing.assert_allclose(np.asarray(a)[0], np.asarray(b)[0], rtol=1e-5, atol=1e-7)
