@@ -11,8 +11,10 @@ import contextlib
 import ctypes.util
 import importlib
 import importlib.metadata
+import importlib.util
 import io
 import os
+import pkgutil
 import re
 import sys
 from typing import Any
@@ -65,7 +67,11 @@ _FLAGS_JAXLIB = "0.10.2"
 
 
 def _gpu_plugin_installed() -> bool:
-    return any((d.metadata["Name"] or "").lower().startswith("jax-cuda") for d in importlib.metadata.distributions())
+    """A jax-cuda plugin is installed: its module `jax_plugins.xla_cuda*` (found without importing
+    it, and without reading every installed distribution's metadata on each import)."""
+    spec = importlib.util.find_spec("jax_plugins")
+    locations = spec.submodule_search_locations if spec else None
+    return any(m.name.startswith("xla_cuda") for m in pkgutil.iter_modules(locations or []))
 
 
 if importlib.metadata.version("jaxlib") == _FLAGS_JAXLIB:

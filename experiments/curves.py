@@ -112,11 +112,12 @@ def make_arms(tasks: Sequence[str], agents: Sequence[str], args: argparse.Namesp
 def estimate(arm: Arm) -> float:
     """Estimated seconds to train what is left of the run (`SECONDS`): its compilation and its
     remaining epochs; 0 when it is done."""
-    if grid.status(arm) == "done":
+    step = grid.latest(arm)
+    if grid.status_at(step, arm.epochs) == "done":
         return 0.0
     kind = "image" if agent_spec(arm.given["agent"]).uses_image else "proprio"
     per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
-    return compile_s + per_epoch * (arm.epochs - (grid.latest(arm) or 0))
+    return compile_s + per_epoch * (arm.epochs - (step or 0))
 
 
 def duration(seconds: float) -> str:
@@ -127,10 +128,11 @@ def duration(seconds: float) -> str:
 
 def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     """The plan: one line per run with its estimated time, then the estimated total."""
+    seconds = [estimate(arm) for arm in arms]
     lines = [f"plan: {len(arms)} runs"]
-    lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {estimate(arm):,.0f} s" for arm in arms]
+    lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
     lines.append(
-        f"estimated time: {duration(sum(map(estimate, arms)))} on one H200 running the runs one after another "
+        f"estimated time: {duration(sum(seconds))} on one H200 running the runs one after another "
         "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
     )
     return "\n".join(lines)

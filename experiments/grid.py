@@ -34,10 +34,13 @@ PASS_THROUGH = frozenset(
 
 @dataclasses.dataclass(frozen=True)
 class Arm:
-    """One run of an experiment: its name and its config fields."""
+    """One run of an experiment: its name, its config fields, and what a fresh start does to the
+    initial state (`initialize`, e.g. the noise experiment's κ per seed; by default the transfer's
+    restore when the run has `init_from`, else nothing)."""
 
     name: str
     given: dict[str, Any]
+    initialize: Callable[[Any], Any] | None = None
 
     @property
     def run_dir(self) -> str:
@@ -101,10 +104,14 @@ def latest(arm: Arm) -> int | None:
     return checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
 
 
+def status_at(step: int | None, epochs: int) -> str:
+    """"done" (latest checkpoint `step` at `epochs`), "resume" (an earlier one) or "new" (none)."""
+    return "new" if step is None else "done" if step >= epochs else "resume"
+
+
 def status(arm: Arm) -> str:
-    """"done" (latest checkpoint at its epochs), "resume" (an earlier checkpoint) or "new" (none)."""
-    step = latest(arm)
-    return "new" if step is None else "done" if step >= arm.epochs else "resume"
+    """The run's `status_at` its latest checkpoint."""
+    return status_at(latest(arm), arm.epochs)
 
 
 def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
@@ -128,7 +135,7 @@ def plan_line(arm: Arm, env) -> str:
     return (
         f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
         f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
-        f"[{status(arm)}" + (f", checkpoint at epoch {step}]" if step else "]")
+        f"[{status_at(step, arm.epochs)}" + (f", checkpoint at epoch {step}]" if step else "]")
     )
 
 
@@ -136,7 +143,7 @@ def train_arm(arm: Arm, env, quiet: bool) -> None:
     """Train one run to its epochs (resuming its latest checkpoint), or skip it when done."""
     state = status(arm)
     if state == "done":
-        print(f"{arm.name}: done ({arm.run_dir})")
+        print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
         return
     resume = state == "resume"
     configs = loop.prepare(arm.given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
@@ -144,8 +151,9 @@ def train_arm(arm: Arm, env, quiet: bool) -> None:
     if not resume:  # a run stopped before its first checkpoint starts again
         loop.delete_run_dir(arm.run_dir)
     run = configs[0]
-    segments = env.observation_spec.proprio_segments
-    initialize = transfer.make_initializer(run, segments, envs_mjx.make) if run.init_from else None
+    initialize = arm.initialize
+    if initialize is None and run.init_from:
+        initialize = transfer.make_initializer(run, env.observation_spec.proprio_segments, envs_mjx.make)
     row = loop.train(env, *configs, quiet=quiet, resume=resume, initialize=initialize)
     print(f"{arm.name}:", end=" ")
     run_cli.print_summary(run, row)

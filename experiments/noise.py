@@ -15,7 +15,9 @@ and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 r
 Resumable: a finished agent is skipped, an interrupted one resumed from its latest
 checkpoint; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
-the nicol_slide preset's.
+the nicol_slide preset's. The agents' runs are trained by `experiments/grid.py` (as the
+transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
+option, config or checkpoint; 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM.
 """
 
 from __future__ import annotations
@@ -28,10 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop
-from bidal_jax.checkpoint import CheckpointError
-from bidal_jax.validate import ConfigError
-from experiments import plot
+from bidal_jax import config as config_lib, loop
+from experiments import grid, plot, run as run_cli
+from experiments.grid import Arm
 
 KAPPAS = (0.05, 0.10, 0.15)
 LAST_N = {0.05: 5, 0.10: 30, 0.15: 30}  # the paper's window per κ (Table II)
@@ -51,28 +52,15 @@ def run_kappas(runs: int) -> np.ndarray:
     return np.repeat(np.asarray(KAPPAS, np.float32), runs)
 
 
-def train_agent(agent: str, run_dir: str, given: dict, runs: int, quiet: bool) -> None:
-    """Train (or resume, or skip when finished) one agent's 3 κ × `runs` program in `run_dir`."""
-    given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(KAPPAS) * runs}
-    ckpt_dir = os.path.join(run_dir, "checkpoints")
-    latest = checkpoint.latest_step(ckpt_dir)
-    resume = latest is not None
-    if resume and latest >= given["epochs"]:
-        print(f"{agent}: finished ({run_dir}), skipped")
-        return
-    # a start that never reached its first checkpoint is started again (prepare refuses to
-    # delete a directory holding anything a run does not write)
-    configs = loop.prepare(given if not resume else {"run_dir": run_dir, "epochs": given["epochs"]},
-                           env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume, overwrite=not resume)
-    if not resume:
-        loop.delete_run_dir(run_dir)
+def agent_arm(agent: str, run_dir: str, given: dict, runs: int) -> Arm:
+    """One agent's 3 κ × `runs` program in `run_dir`: a run whose fresh state gets κ per seed."""
     kappas = jnp.asarray(run_kappas(runs))
 
     def with_kappas(state):
         return state.replace(noise=state.noise.replace(kappa=kappas))
 
-    env = envs_mjx.make(configs[0].env, render=config_lib.agent_spec(agent).uses_image)
-    loop.train(env, *configs, quiet=quiet, resume=resume, initialize=with_kappas)
+    given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(KAPPAS) * runs}
+    return Arm(agent, given, initialize=with_kappas)
 
 
 def kappa_curves(run: dict, runs: int) -> list[plot.Curve]:
@@ -141,21 +129,16 @@ def main(argv: list[str] | None = None) -> int:
     given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
              **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
     given["epochs"] = args.epochs or config_lib.resolve(given)[0].epochs
-    try:
-        if args.runs < 1:
-            raise ConfigError(f"--runs {args.runs}: must be a positive integer")
-        os.makedirs(args.out, exist_ok=True)
-        print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
-              f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
-        loop.enable_compilation_cache()
-        for agent in args.agents:
-            train_agent(agent, os.path.join(args.out, agent), given, args.runs, args.quiet)
-    except (ConfigError, CheckpointError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    except loop.Interrupted as stop:
-        print(f"{stop}; run the same command again to continue", file=sys.stderr)
-        return stop.exit_code
+    if args.runs < 1:
+        return grid.error(f"--runs {args.runs}: must be a positive integer", run_cli.EXIT_BAD_INPUT)
+    os.makedirs(args.out, exist_ok=True)
+    print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
+          f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
+    loop.enable_compilation_cache()
+    arms = [agent_arm(agent, os.path.join(args.out, agent), given, args.runs) for agent in args.agents]
+    code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)
+    if code:
+        return code
     print(report(args.out, args.runs))
     return 0
 
