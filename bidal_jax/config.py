@@ -45,6 +45,11 @@ class NetworkConfig:
     """Sizes of the networks (paper Sec. III-B and III-C)."""
 
     conv_channels: int = doc(16, "channels of each of the four conv layers of the vision branch")
+    conv_strides: str = doc(
+        "3,2,2,2",
+        "strides of the vision branch's four 3×3 conv layers, comma-separated (the first unpadded, the others "
+        "'same'-padded): 3,2,2,2 maps 42×42 to 14, 7, 4, 2; 2,2,1,1 to 20, 10, 10, 10",
+    )
     vision_features: int = doc(64, "width of the dense layer that ends the vision branch")
     proprio_features: int = doc(64, "width of the proprio branch's dense layer")
     latent_size: int = doc(50, "size of the latent state φ(s) of the multimodal encoder")
@@ -52,6 +57,15 @@ class NetworkConfig:
     hidden_size: int = doc(128, "width of the actor's and critic's hidden layers")
     hidden_layers: int = doc(2, "number of hidden layers of the actor and the critic")
     model_hidden_size: int = doc(128, "hidden width of the forward model f and inverse model g")
+
+
+def parse_strides(text: str) -> tuple[int, ...]:
+    """`NetworkConfig.conv_strides` as integers: "3,2,2,2" -> (3, 2, 2, 2); ValueError if it is not
+    four positive integers."""
+    strides = tuple(int(part) for part in text.split(","))
+    if len(strides) != 4 or min(strides) < 1:
+        raise ValueError(f"{text!r}: not four positive integers")
+    return strides
 
 
 @dataclasses.dataclass(frozen=True)

@@ -21,7 +21,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from bidal_jax.config import AgentSpec, NetworkConfig
+from bidal_jax.config import AgentSpec, NetworkConfig, parse_strides
 
 
 class PatchConv(nn.Module):
@@ -58,23 +58,26 @@ class PatchConv(nn.Module):
 
 
 class VisionBranch(nn.Module):
-    """Four conv layers with ELU, then a dense layer: 42×42 → 14×14 → 7×7 → 4×4 → 2×2 → features.
+    """Four 3×3 conv layers with ELU (paper Sec. III-B: "four convolution layers with Elu
+    activation"), then a dense layer.
 
-    The paper gives no strides. The first layer is a 3×3 stride-3 conv (non-overlapping
-    patches) and the next three are 3×3 stride-2 convs: on a CPU a stride-2 first layer
-    over the full 42×42 frame costs several times more per gradient step.
+    The paper gives no strides (`NetworkConfig.conv_strides`). The default 3,2,2,2 (a first
+    layer of non-overlapping patches) maps 42×42 → 14×14 → 7×7 → 4×4 → 2×2: on a CPU a stride-2
+    first layer over the full frame costs several times more per gradient step.
     """
 
     channels: int
     features: int
+    strides: tuple[int, ...] = (3, 2, 2, 2)
 
     @nn.compact
     def __call__(self, image: jax.Array) -> jax.Array:
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
         x = image.astype(jnp.float32) / 255.0
-        x = nn.elu(PatchConv(self.channels, stride=3, padding="VALID")(x))
-        for _ in range(3):
-            x = nn.elu(PatchConv(self.channels)(x))
+        first, *rest = self.strides
+        x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID")(x))
+        for stride in rest:
+            x = nn.elu(PatchConv(self.channels, stride=stride)(x))
         x = x.reshape(x.shape[0], -1)
         return nn.elu(nn.Dense(self.features)(x))
 
@@ -92,7 +95,7 @@ class Encoder(nn.Module):
     def __call__(self, image: jax.Array, proprio: jax.Array) -> jax.Array:
         chex.assert_rank(proprio, 2)
         cfg = self.config
-        parts = [VisionBranch(cfg.conv_channels, cfg.vision_features)(image)]
+        parts = [VisionBranch(cfg.conv_channels, cfg.vision_features, parse_strides(cfg.conv_strides))(image)]
         if self.uses_proprio:
             parts.append(nn.elu(nn.Dense(cfg.proprio_features, name=PROPRIO_LAYER)(proprio)))
         x = nn.Dense(cfg.latent_size)(jnp.concatenate(parts, axis=-1))

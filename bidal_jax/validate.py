@@ -15,7 +15,7 @@ import math
 from typing import Any, Callable, Iterable
 
 from bidal_jax import noise
-from bidal_jax.config import AGENTS, NetworkConfig, RunConfig, TrainConfig
+from bidal_jax.config import AGENTS, NetworkConfig, RunConfig, TrainConfig, parse_strides
 
 
 class ConfigError(ValueError):
@@ -44,6 +44,14 @@ def _probability(v: Any) -> bool:
 
 
 def _anything(v: Any) -> bool:
+    return True
+
+
+def _strides(v: str) -> bool:
+    try:
+        parse_strides(v)
+    except ValueError:
+        return False
     return True
 
 
@@ -95,6 +103,7 @@ RULES: dict[str, Rule] = {
     "grad_clip": _POS,
     # network
     "conv_channels": _POS_INT,
+    "conv_strides": (str, _strides, "four comma-separated positive integers, e.g. 3,2,2,2"),
     "vision_features": _POS_INT,
     "proprio_features": _POS_INT,
     "latent_size": _POS_INT,

@@ -100,12 +100,17 @@ def checked_arms(args: argparse.Namespace, rest: Sequence[str], prog: str,
 
 
 def latest(arm: Arm) -> int | None:
-    """The epoch of the run's latest checkpoint (None: it has none)."""
+    """The epoch the run has reached: its last recorded epoch when its metrics hold all its epochs
+    (a finished run whose checkpoints were not kept, as in results/, is done), else the epoch of
+    its latest checkpoint (None: it has none)."""
+    run = loaded(arm.run_dir)
+    if run is not None and run["epoch"][-1] >= arm.epochs:
+        return int(run["epoch"][-1])
     return checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
 
 
 def status_at(step: int | None, epochs: int) -> str:
-    """"done" (latest checkpoint `step` at `epochs`), "resume" (an earlier one) or "new" (none)."""
+    """"done" (`latest` at `epochs`), "resume" (an earlier checkpoint) or "new" (none)."""
     return "new" if step is None else "done" if step >= epochs else "resume"
 
 
@@ -132,10 +137,11 @@ def plan_line(arm: Arm, env) -> str:
     per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
     source = f", parameters from {run.init_from}" if run.init_from else ""
     step = latest(arm)
+    state = status_at(step, arm.epochs)
     return (
         f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
         f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
-        f"[{status_at(step, arm.epochs)}" + (f", checkpoint at epoch {step}]" if step else "]")
+        f"[{state}" + (f", checkpoint at epoch {step}]" if state == "resume" else "]")
     )
 
 

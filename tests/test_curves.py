@@ -64,7 +64,8 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     out = tmp_path / "out"
     done, interrupted, unstarted = (str(out / "planar_reach" / a) for a in
                                     ("proprio_baseline", "visual_baseline", "multimodal_baseline"))
-    fake_run(done, "planar_reach", [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], 3, agent="proprio_baseline")
+    # finished, its checkpoints not kept (as in results/): its metrics hold all its epochs
+    fake_run(done, "planar_reach", [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None, agent="proprio_baseline")
     fake_run(interrupted, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline")
     os.makedirs(unstarted)
     with open(os.path.join(unstarted, "metrics.csv"), "w") as f:
@@ -72,7 +73,7 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
     printed = capsys.readouterr().out
     assert no_nicol == []
-    assert "[done, checkpoint at epoch 3]; estimated 0 s" in printed
+    assert "[done]; estimated 0 s" in printed
     assert "[resume, checkpoint at epoch 1]; estimated 72 s" in printed  # 60 s compile + 2 epochs × 6 s
     assert "[new]; estimated 78 s" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 0

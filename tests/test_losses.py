@@ -157,3 +157,12 @@ def test_patch_conv_equals_flax_conv(size, stride, padding):
     params = reference.init(jax.random.PRNGKey(1), x)
     ours = PatchConv(5, stride=stride, padding=padding).apply(params, x)
     np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
+
+
+@pytest.mark.parametrize("strides, features", [("3,2,2,2", 2 * 2 * 4), ("2,2,1,1", 10 * 10 * 4), ("2,2,2,2", 3 * 3 * 4)])
+def test_conv_strides_set_the_vision_branch_feature_map(strides, features):
+    """--conv-strides: the first layer unpadded, the others 'same'-padded, so the dense layer that
+    ends the vision branch sees H×W×C features (42 → 14 → 7 → 4 → 2 for 3,2,2,2)."""
+    config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides)
+    params = make_networks(AGENTS["visual_bidal"], config, 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
+    assert params["encoder"]["params"]["VisionBranch_0"]["Dense_0"]["kernel"].shape == (features, 64)

@@ -71,6 +71,8 @@ BAD_COMMAND_LINES = {
     "zero updates": (["--updates-per-cycle", "0"], ["--updates-per-cycle 0"]),
     "zero eval envs": (["--eval-envs", "0"], ["--eval-envs 0"]),
     "zero hidden size": (["--hidden-size", "0"], ["--hidden-size 0", "positive integer"]),
+    "three conv strides": (["--conv-strides", "2,2,1"], ["--conv-strides 2,2,1", "four comma-separated positive integers"]),
+    "zero conv stride": (["--conv-strides", "2,0,1,1"], ["--conv-strides 2,0,1,1", "four comma-separated"]),
     "zero actor lr": (["--actor-lr", "0"], ["--actor-lr 0.0", "positive number"]),
     "negative critic lr": (["--critic-lr", "-0.001"], ["--critic-lr -0.001", "positive number"]),
     "nan lr": (["--critic-lr", "nan"], ["--critic-lr nan", "positive number, not nan"]),
