@@ -25,8 +25,9 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 run dir, new/resume/done) and its estimated time on one H200 running the runs one after another
 (`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
 (`experiments/grid.py`), resumable as experiments.transfer: run the same command again; a run
-whose latest checkpoint is at its epochs is skipped, an interrupted one resumes from its latest
-checkpoint, one without a checkpoint starts again. The persistent compilation cache is not used,
+whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
+is skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint
+starts again. The persistent compilation cache is not used,
 so that every run's `wall_time` includes its compilation.
 
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
@@ -60,8 +61,8 @@ TASKS = tuple(EPOCHS)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
 # one H200, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline)
-# - NICOL, image agent: about 5 s/epoch (two such programs sharing the GPU: 10.5-11.5 s/epoch each),
-#   compile 140-220 s;
+# - NICOL, image agent: about 5 s/epoch (two such programs sharing the GPU: 10.5-11.5 s/epoch each;
+#   two per GPU beside small runs on a 4-GPU machine: ~14 s/epoch each), compile 140-220 s;
 # - NICOL, proprio_baseline: assumed 2 s/epoch, compile 90 s (a measured 15-seed proprio noise
 #   program: 135 s for 19 epochs, of which 90 s compile);
 # - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
