@@ -254,13 +254,15 @@ def _restore_checked(path: str, where: str, args: dict, partial: bool = False) -
 
 def restore_partial(directory: str, step: int | None, wanted: Any) -> dict:
     """Only the leaves of the `state` item named by `wanted` (a sub-tree of `read_metadata(...)["state"]`
-    or of shape/dtype structs), with Orbax partial restore; the buffer is never read.
+    or of shape/dtype structs), with Orbax partial restore, as numpy arrays on the host (whatever
+    devices and processes wrote them: every process reads them whole); the buffer is never read.
 
     Raises CheckpointError when a wanted leaf is missing, damaged or fails its checksum.
     """
     path, step = _step_dir(directory, step)
     where = f"checkpoint {step} in {directory}"
-    target = jax.tree.map(ocp.utils.to_shape_dtype_struct, wanted)
+    # no sharding: the saved one names the writer's devices, which this process may not have
+    target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), wanted)
     _check_structure(_metadata(path, where, ("state",))["state"], target, where, partial=True)
     args = ocp.args.PyTreeRestore(
         item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True
