@@ -30,6 +30,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from bidal_jax import multihost
+
 
 class CheckpointError(Exception):
     """A checkpoint that cannot be used: missing, damaged, or written for another run."""
@@ -73,9 +75,13 @@ def leaf_name(path: tuple) -> str:
 
 
 def digest(state: Any) -> dict[str, int]:
-    """Leaf name -> CRC-32 of its bytes (on the host)."""
-    leaves = jax.tree_util.tree_flatten_with_path(jax.device_get(state))[0]
-    return {leaf_name(path): zlib.crc32(np.ascontiguousarray(leaf)) for path, leaf in leaves}
+    """Leaf name -> CRC-32 of its bytes, read on the host in parts (`multihost.host_parts`: the
+    whole state, or one seed at a time from a state spanning processes, which all digest it)."""
+    names = [leaf_name(path) for path, _ in jax.tree_util.tree_flatten_with_path(state)[0]]
+    crcs = [0] * len(names)
+    for part in multihost.host_parts(state):
+        crcs = [zlib.crc32(np.ascontiguousarray(leaf), crc) for leaf, crc in zip(jax.tree.leaves(part), crcs)]
+    return dict(zip(names, crcs))
 
 
 def _split(state: Any) -> tuple[dict, Any]:
