@@ -30,6 +30,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from bidal_jax import multihost
+
 
 class CheckpointError(Exception):
     """A checkpoint that cannot be used: missing, damaged, or written for another run."""
@@ -73,9 +75,13 @@ def leaf_name(path: tuple) -> str:
 
 
 def digest(state: Any) -> dict[str, int]:
-    """Leaf name -> CRC-32 of its bytes (on the host)."""
-    leaves = jax.tree_util.tree_flatten_with_path(jax.device_get(state))[0]
-    return {leaf_name(path): zlib.crc32(np.ascontiguousarray(leaf)) for path, leaf in leaves}
+    """Leaf name -> CRC-32 of its bytes, read on the host in parts (`multihost.host_parts`: the
+    whole state, or one seed at a time from a state spanning processes, which all digest it)."""
+    names = [leaf_name(path) for path, _ in jax.tree_util.tree_flatten_with_path(state)[0]]
+    crcs = [0] * len(names)
+    for part in multihost.host_parts(state):
+        crcs = [zlib.crc32(np.ascontiguousarray(leaf), crc) for leaf, crc in zip(jax.tree.leaves(part), crcs)]
+    return dict(zip(names, crcs))
 
 
 def _split(state: Any) -> tuple[dict, Any]:
@@ -254,13 +260,15 @@ def _restore_checked(path: str, where: str, args: dict, partial: bool = False) -
 
 def restore_partial(directory: str, step: int | None, wanted: Any) -> dict:
     """Only the leaves of the `state` item named by `wanted` (a sub-tree of `read_metadata(...)["state"]`
-    or of shape/dtype structs), with Orbax partial restore; the buffer is never read.
+    or of shape/dtype structs), with Orbax partial restore, as numpy arrays on the host (whatever
+    devices and processes wrote them: every process reads them whole); the buffer is never read.
 
     Raises CheckpointError when a wanted leaf is missing, damaged or fails its checksum.
     """
     path, step = _step_dir(directory, step)
     where = f"checkpoint {step} in {directory}"
-    target = jax.tree.map(ocp.utils.to_shape_dtype_struct, wanted)
+    # no sharding: the saved one names the writer's devices, which this process may not have
+    target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), wanted)
     _check_structure(_metadata(path, where, ("state",))["state"], target, where, partial=True)
     args = ocp.args.PyTreeRestore(
         item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True

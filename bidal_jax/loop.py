@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import checkpoint, config as config_lib, transfer, validate
+from bidal_jax import checkpoint, config as config_lib, multihost, transfer, validate
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.validate import ConfigError, option
@@ -146,8 +146,8 @@ def state_bytes(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig)
 
 
 def device_memory() -> int:
-    """Bytes of memory of the first device: the accelerator's limit, or the host's RAM on a CPU."""
-    stats = jax.devices()[0].memory_stats() or {}
+    """Bytes of memory of this process's first device: the accelerator's limit, or the host's RAM on a CPU."""
+    stats = jax.local_devices()[0].memory_stats() or {}
     if "bytes_limit" in stats:
         return int(stats["bytes_limit"])
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
@@ -173,7 +173,10 @@ def prepare(
     overwrite: bool = False,
 ) -> Configs:
     """The configs of the run that `given` (field -> value, e.g. a command line) asks for, after
-    every check; compiles and writes nothing. Raises ConfigError or CheckpointError."""
+    every check; compiles and writes nothing. Raises ConfigError or CheckpointError.
+
+    With several processes, each checks (the same files: the same outcome) and they wait for
+    each other at the end, so that no process writes before every one has checked."""
     if resume and overwrite:
         raise ConfigError("--resume and --overwrite exclude each other: continue the run or delete it")
     if resume and not given.get("run_dir"):
@@ -204,6 +207,7 @@ def prepare(
     check_memory(per_device, device_memory(), configs[0].seeds)
     if configs[0].init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(env, *configs, make_env=make_env)
+    multihost.barrier("bidal_jax.loop.prepare")
     return configs
 
 
@@ -221,20 +225,24 @@ class MetricsLog:
 
     With `resume_epoch`, the rows after that epoch (written after the checkpoint, before
     the run stopped) are dropped from the CSV and purged from TensorBoard; new rows are appended.
+    With `writes=False` (every process of a run over several but process 0) nothing is written;
+    `last_row` is still the last row up to `resume_epoch`.
     """
 
-    def __init__(self, run_dir: str, resume_epoch: int | None = None):
-        from tensorboardX import SummaryWriter
-
+    def __init__(self, run_dir: str, resume_epoch: int | None = None, writes: bool = True):
         self.path = os.path.join(run_dir, "metrics.csv")
         self.fields: list[str] | None = None
         self.last_row: dict[str, float] = {}
+        self.writer = None
         if resume_epoch is not None and os.path.exists(self.path):
-            self._truncate(resume_epoch)
-        purge = None if resume_epoch is None else resume_epoch + 1
-        self.writer = SummaryWriter(os.path.join(run_dir, "tb"), purge_step=purge)
+            self._truncate(resume_epoch, writes)
+        if writes:
+            from tensorboardX import SummaryWriter
 
-    def _truncate(self, epoch: int) -> None:
+            purge = None if resume_epoch is None else resume_epoch + 1
+            self.writer = SummaryWriter(os.path.join(run_dir, "tb"), purge_step=purge)
+
+    def _truncate(self, epoch: int, writes: bool) -> None:
         with open(self.path, newline="") as f:
             reader = csv.DictReader(f)
             rows = list(reader)
@@ -243,7 +251,7 @@ class MetricsLog:
         self.fields = list(reader.fieldnames)
         # a row cut short by a kill has missing (None) values
         kept = [r for r in rows if None not in r.values() and float(r["epoch"]) <= epoch]
-        if len(kept) < len(rows):
+        if writes and len(kept) < len(rows):
             with open(self.path + ".tmp", "w", newline="") as f:
                 writer = csv.DictWriter(f, self.fields)
                 writer.writeheader()
@@ -252,6 +260,9 @@ class MetricsLog:
         self.last_row = {k: float(v) for k, v in kept[-1].items()} if kept else {}
 
     def write(self, row: dict[str, float]) -> None:
+        self.last_row = row
+        if self.writer is None:
+            return
         if self.fields is None:
             self.fields = list(row)
             with open(self.path, "w", newline="") as f:
@@ -262,10 +273,10 @@ class MetricsLog:
             if key != "epoch":
                 self.writer.add_scalar(key, value, int(row["epoch"]))
         self.writer.flush()
-        self.last_row = row
 
     def close(self) -> None:
-        self.writer.close()
+        if self.writer is not None:
+            self.writer.close()
 
 
 def epoch_row(epoch: int, metrics: dict, wall: float, epoch_seconds: float, steps_before: float) -> dict[str, float]:
@@ -417,41 +428,48 @@ def train(
     Raises CheckpointError (before writing anything) when the checkpoint cannot be
     restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
     SIGINT/SIGTERM.
+
+    With several processes (`bidal_jax.multihost`), every process calls it: the seeds span every
+    process's devices, the checkpoints are written by all, config.json, the metrics and the progress
+    bar by process 0 only; a signal to any process stops all after the same epoch.
     """
     from tqdm import tqdm
 
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
+    main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
         epoch, state, start_epoch = build(env, run, train_cfg, net, resume, initialize=initialize)
-        os.makedirs(run.run_dir, exist_ok=True)
         cfg = config_lib.to_dict(run, train_cfg, net)
-        _write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
-        log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None)
+        if main:
+            os.makedirs(run.run_dir, exist_ok=True)
+            _write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
+        log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
         mngr = checkpoint.manager(ckpt_dir)
         finite = jax.jit(finite_flags)
 
         row = log.last_row
         wall_before = row.get("wall_time", 0.0)
-        steps_before = float(np.sum(jax.device_get(state.env_steps)))
+        steps_before = float(np.sum(multihost.to_host(state.env_steps)))
         saved = start_epoch if resume else None
         start = time.time()
-        bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet, unit="epoch",
-                   initial=start_epoch, total=run.epochs)
+        bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
+                   unit="epoch", initial=start_epoch, total=run.epochs)
         try:
             for e in bar:
                 t = time.time()
                 state, metrics = epoch(state)
-                metrics = jax.device_get(metrics)
+                metrics = multihost.to_host(metrics)
                 row = epoch_row(e, metrics, wall_before + time.time() - start, time.time() - t, steps_before)
                 steps_before = row["env_steps_total"]
                 log.write(row)
-                bad = divergence(metrics, jax.device_get(finite(state)))
+                bad = divergence(metrics, multihost.to_host(finite(state)))
                 if bad:
                     last = f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
                     raise Diverged(f"diverged at epoch {e}: {bad}; {last}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success
-                signum = stop.signum  # read once: a signal arriving after this waits for the next epoch
+                # read once: a signal arriving after this waits for the next epoch; one process's stops all
+                signum = multihost.largest(stop.signum or 0) or None
                 if e % run.checkpoint_every == 0 or e == run.epochs or done or signum:
                     checkpoint.save(mngr, e, state, cfg, row["eval_success"])
                     saved = e
@@ -467,9 +485,11 @@ def train(
 
 
 def delete_run_dir(run_dir: str) -> None:
-    """Delete a run directory that `check_run_dir(run_dir, overwrite=True)` accepted."""
-    if os.path.isdir(run_dir):
+    """Delete a run directory that `check_run_dir(run_dir, overwrite=True)` accepted: process 0
+    deletes it, every process waits until it is gone."""
+    if multihost.is_main() and os.path.isdir(run_dir):
         shutil.rmtree(run_dir)
+    multihost.barrier("bidal_jax.loop.delete_run_dir")
 
 
 def enable_compilation_cache() -> None:

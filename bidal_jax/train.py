@@ -23,7 +23,7 @@ from bidal_jax import acting, noise, normalizer, replay
 from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
 from bidal_jax.losses import make_losses
 from bidal_jax.networks import make_networks
-from bidal_jax.validate import check_env_support
+from bidal_jax.validate import ConfigError, check_env_support
 
 
 @struct.dataclass
@@ -194,10 +194,17 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
 
 
 def seed_devices(seeds: int, devices: Sequence[jax.Device] | None = None) -> list[jax.Device]:
-    """The devices that `seeds` vmapped seeds are spread over: as many of `devices` (default: all
-    visible) as divide the seed count evenly (8 seeds on 4 GPUs: 4; 6 on 4: 2; 1 seed: 1)."""
+    """The devices that `seeds` vmapped seeds are spread over: of each process's `devices` (default:
+    all, of every process), as many as divide that process's share of the seeds evenly (one process
+    with 4 GPUs: 8 seeds on 4, 6 on 2, 1 seed on 1; two with 2 devices each: 4 seeds on 2 + 2).
+    Raises ConfigError when the processes cannot hold equal shares."""
     devices = list(jax.devices() if devices is None else devices)
-    return devices[: math.gcd(seeds, len(devices))]
+    processes = sorted({d.process_index for d in devices})
+    if seeds % len(processes):
+        raise ConfigError(f"--seeds {seeds}: must be a multiple of the {len(processes)} processes (each holds as many seeds)")
+    owned = [[d for d in devices if d.process_index == p] for p in processes]
+    per_process = math.gcd(seeds // len(processes), min(len(own) for own in owned))
+    return [d for own in owned for d in own[:per_process]]
 
 
 def seed_sharding(devices: Sequence[jax.Device]) -> NamedSharding:

@@ -143,7 +143,8 @@ class Env(abc.ABC):
         if abs(n_substeps - round(n_substeps)) > 1e-6:
             raise ValueError(f"timestep {mj_model.opt.timestep} does not divide the control period {CONTROL_PERIOD}")
         self.mj_model = mj_model
-        self.mjx_model = mjx.put_model(mj_model)
+        # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
+        self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
         self.n_substeps = int(round(n_substeps))
         self.episode_length = episode_length
         self.epsilon = epsilon

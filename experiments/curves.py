@@ -49,6 +49,7 @@ import os
 import sys
 from typing import Any, Sequence
 
+from bidal_jax import multihost
 from bidal_jax.config import AGENTS, agent_spec
 from bidal_jax.validate import ConfigError
 from experiments import grid, plot, run as run_cli
@@ -202,6 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     out = grid.out_dir(args, "curves")
     try:
+        multihost.initialize()
         tasks = grid.parse_names(args.tasks, "--tasks", "task", TASKS)
         agents = grid.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
         arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
@@ -217,7 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = grid.train_arms(arms, envs, args.quiet)
     variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
     title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
-    grid.write_table(out, plot_results(out, arms, title, args.last_n))
+    if multihost.is_main():  # one process writes the results
+        grid.write_table(out, plot_results(out, arms, title, args.last_n))
     return code
 
 

@@ -30,7 +30,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs_mjx
-from bidal_jax import config as config_lib, loop
+from bidal_jax import config as config_lib, loop, multihost
+from bidal_jax.validate import ConfigError
 from experiments import grid, plot, run as run_cli
 from experiments.grid import Arm
 
@@ -131,6 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     given["epochs"] = args.epochs or config_lib.resolve(given)[0].epochs
     if args.runs < 1:
         return grid.error(f"--runs {args.runs}: must be a positive integer", run_cli.EXIT_BAD_INPUT)
+    try:
+        multihost.initialize()
+    except ConfigError as err:
+        return grid.error(err, run_cli.EXIT_BAD_INPUT)
     os.makedirs(args.out, exist_ok=True)
     print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
           f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
@@ -139,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)
     if code:
         return code
-    print(report(args.out, args.runs))
+    if multihost.is_main():  # one process writes the results
+        print(report(args.out, args.runs))
     return 0
 
 

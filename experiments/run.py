@@ -15,6 +15,9 @@ and the best by eval success are kept). The loop, its checks and its outputs liv
 - A non-empty run directory is only continued (`--resume`) or deleted first
   (`--overwrite`, only once every check passed, and only if it holds nothing but what
   a run writes). A training state larger than the device's memory is refused.
+- Several processes (one per host) train one run together when the environment launches
+  them: `JAX_COORDINATOR_ADDRESS`, `JAX_NUM_PROCESSES` and `JAX_PROCESS_ID`, or a SLURM or
+  Open MPI launch of several tasks (`bidal_jax.multihost`; README "Several hosts").
 
 Exit codes: 0 done; 2 bad command line, config or checkpoint (one `error: ...` line on
 stderr, nothing written); 3 diverged; 130 stopped by SIGINT, 143 by SIGTERM (a
@@ -30,7 +33,7 @@ import os
 import sys
 
 import envs_mjx
-from bidal_jax import config as config_lib, loop, transfer
+from bidal_jax import config as config_lib, loop, multihost, transfer
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import AGENTS, CONFIG_CLASSES, fields_help
 from bidal_jax.validate import ConfigError, option
@@ -97,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     given = {k: v for k, v in vars(args).items() if v is not None}
     try:
+        multihost.initialize()  # several processes, when the environment launched them (README "Several hosts")
         if args.print_config:
             configs = config_lib.resolve(given)
             if args.resume and args.run_dir:

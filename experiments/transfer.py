@@ -46,7 +46,7 @@ import os
 import sys
 from typing import Any, Sequence
 
-from bidal_jax import config as config_lib
+from bidal_jax import config as config_lib, multihost
 from bidal_jax.config import RunConfig
 from bidal_jax.validate import ConfigError
 from experiments import grid, plot, run as run_cli
@@ -168,6 +168,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     out = grid.out_dir(args, "transfer")
     try:
+        multihost.initialize()
         train_names = parse_arms(args.arms)
         arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(args, extra, out))
     except ConfigError as err:
@@ -177,7 +178,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
     variant = ", held starts" if args.held_starts else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
-    grid.write_table(out, plot_results(out, arms, source_dir(args, out), title, args.last_n))
+    if multihost.is_main():  # one process writes the results
+        grid.write_table(out, plot_results(out, arms, source_dir(args, out), title, args.last_n))
     return code
 
 
