@@ -114,7 +114,8 @@ RULES: dict[str, Rule] = {
 }
 
 
-def _check_field(name: str, value: Any) -> None:
+def check_field(name: str, value: Any) -> None:
+    """Raise `ConfigError` when `value` breaks the rule of the config field `name` (`RULES`)."""
     if name not in RULES:  # a field newer than its rule (tests/test_validation.py asks for one)
         return
     kind, allowed, what = RULES[name]
@@ -139,7 +140,7 @@ def check(
     """Raise `ConfigError` for the first value the run cannot use."""
     for config in (run, train, net):
         for f in dataclasses.fields(config):
-            _check_field(f.name, getattr(config, f.name))
+            check_field(f.name, getattr(config, f.name))
     _check_name("env", run.env, env_names)
     _check_name("agent", run.agent, AGENTS)
     if train.buffer_episodes % train.num_envs:

@@ -64,7 +64,7 @@ import time
 
 import numpy as np
 
-from experiments.plot import curves, load_run, time_to_threshold
+from experiments.plot import curves, load_run, markdown_table, time_to_threshold
 
 PROG = "python -m experiments.bench_success"
 CASES = {
@@ -193,24 +193,20 @@ def _reached(summary: dict) -> str:
     return f"{summary['reached']} of {summary['runs']} runs"
 
 
-def _line(cells: list[str]) -> str:
-    return "| " + " | ".join(cells) + " |"
-
-
 def table(summaries: dict[str, dict[str, dict]], commits: dict[str, str]) -> str:
     """Markdown: a row per case and quantity; a column per commit of `commits` ("this", then
     "ref" and this ÷ ref). `summaries[case][commit]` is a `summarize` result."""
     with_ref = "ref" in commits
     header = ["case", "quantity", *(f"{label} ({commit})" for label, commit in commits.items())]
-    lines = [_line(header + ["this ÷ ref"] * with_ref), "|" + " --- |" * (len(header) + with_ref)]
+    rows = []
     for case, by_commit in summaries.items():
         for key, label, *_ in ROWS:
             values = [by_commit[c][key] for c in commits]
             ratio = [_ratio(*values)] if with_ref else []
-            lines.append(_line([case, label, *(_cell(key, v) for v in values), *ratio]))
+            rows.append([case, label, *(_cell(key, v) for v in values), *ratio])
         for label, cell in (("threshold reached", _reached), ("compile from", lambda s: s["compile_from"])):
-            lines.append(_line([case, label, *(cell(by_commit[c]) for c in commits), *[""] * with_ref]))
-    return "\n".join(lines)
+            rows.append([case, label, *(cell(by_commit[c]) for c in commits), *[""] * with_ref])
+    return markdown_table(header + ["this ÷ ref"] * with_ref, rows)
 
 
 def _progress(case: str, label: str, commit: str, figures: dict, target: float) -> str:

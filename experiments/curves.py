@@ -143,11 +143,9 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
 def cell(run: dict, curve: plot.Curve, epochs: int, last_n: int) -> str:
     """Final success (mean ± std over seeds of each seed's last `last_n` epochs), the run's wall
     time, and how far it got when it is unfinished."""
-    mean, std, used = plot.final_success(curve, last_n)
-    window = "" if used == last_n else f" (last {used})"
     done = int(run["epoch"][-1])
     progress = "" if done >= epochs else f", epoch {done} of {epochs}"
-    return f"{mean:.3f} ± {std:.3f}{window}, {run['wall_time'][-1]:,.0f} s{progress}"
+    return f"{plot.final_cell(curve, last_n)}, {run['wall_time'][-1]:,.0f} s{progress}"
 
 
 def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
@@ -156,14 +154,14 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> st
     agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
     by_dir = {c.run_dir: c for c in plot.curves(list(runs.values()))}
     head = ["agent", *(f"{task} ({epochs} epochs)" for task, epochs in tasks.items())]
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    rows = []
     for agent in agents:
         cells = [agent]
         for arm in (a for a in arms if a.given["agent"] == agent):
             run = runs.get(arm.name)
             cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n))
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows.append(cells)
+    return plot.markdown_table(head, rows)
 
 
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:

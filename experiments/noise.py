@@ -76,10 +76,10 @@ def kappa_curves(run: dict, runs: int) -> list[plot.Curve]:
 def table(curves: dict[tuple[float, str], plot.Curve]) -> str:
     """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper."""
     agents = [a for a in AGENTS if any(agent == a for _, agent in curves)]
-    lines = ["| κ | N | " + " | ".join(f"{a} (ours) | {a} (paper)" for a in agents) + " |",
-             "| --- | --- |" + " --- | --- |" * len(agents)]
+    head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper"))]
+    rows = []
     for k in KAPPAS:
-        cells = []
+        cells = [f"{k:.0%}", str(LAST_N[k])]
         for a in agents:
             curve = curves.get((k, a))
             if curve is None:
@@ -89,8 +89,8 @@ def table(curves: dict[tuple[float, str], plot.Curve]) -> str:
                 partial = f" (last {used} of {len(curve.epoch)} epochs)" if used < LAST_N[k] else f" ({len(curve.epoch)} epochs)"
                 cells.append(f"{mean:.3f} ± {std:.4f}{partial}")
             cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
-        lines.append(f"| {k:.0%} | {LAST_N[k]} | " + " | ".join(cells) + " |")
-    return "\n".join(lines) + "\n"
+        rows.append(cells)
+    return plot.markdown_table(head, rows) + "\n"
 
 
 def report(out: str, runs: int) -> str:

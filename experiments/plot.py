@@ -230,6 +230,18 @@ def plot(cs: Sequence[Curve], prefix: str, x: str = "env_steps", title: str = ""
     return png, table
 
 
+def markdown_table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A Markdown table: the header `head`, its rule, then one line per row of cells."""
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    return "\n".join(lines + ["| " + " | ".join(cells) + " |" for cells in rows])
+
+
+def final_cell(curve: Curve, last_n: int) -> str:
+    """`final_success` as "mean ± std", with "(last k)" when the curve has fewer than `last_n` epochs."""
+    mean, std, used = final_success(curve, last_n)
+    return f"{mean:.3f} ± {std:.3f}" + ("" if used == last_n else f" (last {used})")
+
+
 def summary_table(
     runs: Sequence[dict], last_n: int, label_by: Label = "agent", labels: Mapping[str, str] | None = None,
     threshold: float | None = None, panel_by: Label = "env",
@@ -239,16 +251,14 @@ def summary_table(
     head = [panel_by if isinstance(panel_by, str) else "panel", "label", "seeds", "epochs", f"success, last {last_n} epochs (mean ± std over seeds)", "AUC"]
     if threshold is not None:
         head.append(f"first mean ≥ {threshold:g}: epoch, env steps per seed, time")
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    rows = []
     for c in curves(runs, label_by, labels, panel_by):
-        mean, std, used = final_success(c, last_n)
-        cells = [c.panel, c.label, str(c.n_seeds), str(len(c.epoch)), f"{mean:.3f} ± {std:.3f}"
-                 + ("" if used == last_n else f" (last {used})"), f"{normalized_auc(c):.3f}"]
+        cells = [c.panel, c.label, str(c.n_seeds), str(len(c.epoch)), final_cell(c, last_n), f"{normalized_auc(c):.3f}"]
         if threshold is not None:
             hit = time_to_threshold(c, threshold)
             cells.append("never" if hit is None else f"{hit.epoch}, {hit.env_steps:,.0f}, {hit.wall_time:.0f} s")
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows.append(cells)
+    return markdown_table(head, rows)
 
 
 def _label_option(text: str) -> tuple[str, str]:

@@ -125,16 +125,13 @@ def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
     for t in THRESHOLDS:
         head += [f"env steps to {t:g}", f"time to {t:g}"]
     head += ["AUC", f"final success (last {last_n} epochs)"]
-    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    rows = []
     for c in curves:
         cells = [c.label, str(c.n_seeds), str(len(c.epoch)), f"{c.env_steps[-1]:,.0f}"]
         for t in THRESHOLDS:
             cells += _cell(plot.time_to_threshold(c, t))
-        mean, std, used = plot.final_success(c, last_n)
-        final = f"{mean:.3f} ± {std:.3f}" + ("" if used == last_n else f" (last {used})")
-        cells += [f"{plot.normalized_auc(c):.3f}", final]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        rows.append(cells + [f"{plot.normalized_auc(c):.3f}", plot.final_cell(c, last_n)])
+    return plot.markdown_table(head, rows)
 
 
 def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:

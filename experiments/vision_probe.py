@@ -33,9 +33,11 @@ import numpy as np
 import optax
 
 import envs_mjx
+from bidal_jax import validate
 from bidal_jax.config import NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
 from bidal_jax.validate import ConfigError
+from experiments import grid
 
 PROG = "python -m experiments.vision_probe"
 HELD_OUT = 0.2  # share of the frames the probe is tested on
@@ -96,7 +98,8 @@ def probe(env, strides: tuple[int, ...], key: jax.Array, n_frames: int, steps: i
     mean, std = train_y.mean(0), train_y.std(0) + 1e-6
     model = Probe(env.observation_spec.goal_size, strides)
     params = fit(model, key_fit, train_x, (train_y - mean) / std, steps, batch, lr)
-    pred = np.concatenate([np.asarray(jax.jit(model.apply)(params, test_x[i:i + 1024])) for i in range(0, len(test_x), 1024)])
+    apply = jax.jit(model.apply)
+    pred = np.concatenate([np.asarray(apply(params, test_x[i:i + 1024])) for i in range(0, len(test_x), 1024)])
     pred = pred * std + mean
     return {
         "rmse": np.sqrt(np.mean((pred - test_y) ** 2, axis=0)),
@@ -123,16 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]:
     """The envs and stride settings asked for; ConfigError naming a bad one."""
-    envs = [name.strip() for name in args.envs.split(",") if name.strip()]
-    for name in envs or [args.envs]:
-        if name not in envs_mjx.names():
-            raise ConfigError(f"--envs {args.envs}: unknown env {name!r}; allowed: {', '.join(envs_mjx.names())}")
-    strides = []
+    envs = list(grid.parse_names(args.envs, "--envs", "env", envs_mjx.names()))
     for text in args.conv_strides:
-        try:
-            strides.append(parse_strides(text))
-        except ValueError:
-            raise ConfigError(f"--conv-strides {text}: must be four comma-separated positive integers, e.g. 3,2,2,2") from None
+        validate.check_field("conv_strides", text)
+    strides = [parse_strides(text) for text in args.conv_strides]
     for flag, value, least in (("--frames", args.frames, 5), ("--steps", args.steps, 1), ("--batch", args.batch, 1)):
         if value < least:
             raise ConfigError(f"{flag} {value}: must be an integer >= {least}")
