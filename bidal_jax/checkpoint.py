@@ -30,7 +30,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from bidal_jax import multihost
+from bidal_jax import multihost, replay
 
 
 class CheckpointError(Exception):
@@ -90,9 +90,10 @@ def _split(state: Any) -> tuple[dict, Any]:
     return fields, state.buffer
 
 
-def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float) -> None:
+def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1) -> None:
     """Save `state` (buffer apart), `config` and the state's digest as `step`, ranked by
-    `eval_success` for the best checkpoint; wait until it is on disk."""
+    `eval_success` for the best checkpoint; wait until it is on disk. `env_shards`: how many
+    shards kept the buffer (its layout, `replay.relayout`), saved beside the digest."""
     fields, buffer = _split(state)
     mngr.save(
         step,
@@ -100,7 +101,7 @@ def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_
             state=ocp.args.StandardSave(fields),
             buffer=ocp.args.StandardSave(buffer),
             config=ocp.args.JsonSave(config),
-            digest=ocp.args.JsonSave({"crc32": digest(state)}),
+            digest=ocp.args.JsonSave({"crc32": digest(state), "env_shards": env_shards}),
         ),
         metrics={BEST_METRIC: float(eval_success)},
     )
@@ -201,11 +202,12 @@ def _check_structure(saved: Any, target: Any, where: str, partial: bool = False)
             )
 
 
-def restore(directory: str, abstract_state: Any, step: int | None = None) -> tuple[Any, dict, int]:
+def restore(directory: str, abstract_state: Any, step: int | None = None, env_shards: int = 1) -> tuple[Any, dict, int]:
     """Restore (state, config, step) shaped like `abstract_state` (latest step by default); reads only.
 
     Checks the saved leaves' names, shapes and dtypes against `abstract_state` before
-    reading any array, and the restored bytes against the saved digest afterwards.
+    reading any array, and the restored bytes against the saved digest afterwards. A buffer
+    saved by another number of env shards is laid out for `env_shards` (`replay.relayout`).
     """
     path, step = _step_dir(directory, step)
     where = f"checkpoint {step} in {directory}"
@@ -217,8 +219,9 @@ def restore(directory: str, abstract_state: Any, step: int | None = None) -> tup
         "buffer": ocp.args.StandardRestore(buffer),
         "config": ocp.args.JsonRestore(),
     })
-    state = type(abstract_state)(**restored["state"], buffer=restored["buffer"])
-    return state, restored["config"], step
+    saved_shards = (restored["digest"] or {}).get("env_shards", 1)  # checkpoints before env shards: 1
+    buffer = replay.relayout(restored["buffer"], saved_shards, env_shards, axis=1)  # after the seed axis
+    return type(abstract_state)(**restored["state"], buffer=buffer), restored["config"], step
 
 
 def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:

@@ -25,7 +25,7 @@ import signal
 import sys
 import threading
 import time
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -201,9 +201,9 @@ def prepare(
     # what the env must offer and whether the state fits (builds the env and traces init, no compile)
     env = make_env(configs[0].env, render=False)
     validate.check_env_support(configs[1], env)
-    from bidal_jax.train import seed_devices
+    from bidal_jax.train import device_layout
 
-    per_device = state_bytes(env, *configs) // len(seed_devices(configs[0].seeds))
+    per_device = state_bytes(env, *configs) // len(device_layout(configs[0].seeds, configs[1])[0])
     check_memory(per_device, device_memory(), configs[0].seeds)
     if configs[0].init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(env, *configs, make_env=make_env)
@@ -371,50 +371,62 @@ def _log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
 
 
-def _programs(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig):
-    """The seeds' jitted (init, epoch), their keys, and the seed axis' sharding over the devices."""
-    from bidal_jax.train import make_seeded, make_train, seed_devices, seed_sharding
+class Programs(NamedTuple):
+    """A run's jitted programs and where they run (`train.device_layout`)."""
 
-    devices = seed_devices(run.seeds)
-    init, epoch = make_seeded(*make_train(env, config_lib.agent_spec(run.agent), net, train_cfg), devices)
-    return init, epoch, jax.random.split(jax.random.PRNGKey(run.seed), run.seeds), seed_sharding(devices)
+    init: Callable
+    epoch: Callable
+    keys: jax.Array  # the seeds' keys
+    sharding: Any  # where the training state lives (for jax.device_put)
+    devices: list
+    shards: int  # env shards per seed
+
+
+def _programs(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig) -> Programs:
+    from bidal_jax.train import device_layout, make_seeded, make_train, seed_sharding
+
+    devices, shards = device_layout(run.seeds, train_cfg)
+    init, epoch = make_seeded(*make_train(env, config_lib.agent_spec(run.agent), net, train_cfg, shards), devices, shards)
+    keys = jax.random.split(jax.random.PRNGKey(run.seed), run.seeds)
+    return Programs(init, epoch, keys, seed_sharding(devices, shards), devices, shards)
 
 
 def restore_state(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, step: int | None = None):
     """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default),
-    placed on this process's seed devices (whatever device count wrote it); compiles nothing."""
-    init, _, keys, sharding = _programs(env, run, train_cfg, net)
-    return _restore(run, init, keys, sharding, step)
+    placed on this process's devices (whatever device count wrote it); compiles nothing."""
+    return _restore(run, _programs(env, run, train_cfg, net), step)
 
 
-def _restore(run: RunConfig, init: Callable, keys: jax.Array, sharding, step: int | None = None):
-    state, _, step = checkpoint.restore(os.path.join(run.run_dir, "checkpoints"), jax.eval_shape(init, keys), step)
-    return jax.device_put(state, sharding), step
+def _restore(run: RunConfig, programs: Programs, step: int | None = None):
+    abstract = jax.eval_shape(programs.init, programs.keys)
+    state, _, step = checkpoint.restore(os.path.join(run.run_dir, "checkpoints"), abstract, step, programs.shards)
+    return jax.device_put(state, programs.sharding), step
 
 
 def build(
     env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, resume: bool, log: Callable = _log,
     initialize: Callable | None = None,
 ):
-    """(compiled epoch, state to start from, its epoch): a new state, or the latest checkpoint's; writes nothing.
+    """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's; writes nothing.
 
     `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
     from another run for transfer); a resumed run continues its checkpoint as it is.
     Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
     """
-    init, epoch, keys, sharding = _programs(env, run, train_cfg, net)
+    programs = _programs(env, run, train_cfg, net)
     start = time.time()
-    devices = len(sharding.mesh.devices.flat)
-    log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on {devices} device(s)) ...")
+    shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
+    log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on "
+        f"{len(programs.devices)} device(s){shards}) ...")
     if resume:
-        state, step = _restore(run, init, keys, sharding)
+        state, step = _restore(run, programs)
     else:
-        state, step = init(keys), 0
-        if initialize is not None:  # its leaves may come from elsewhere: place them on the seed devices
-            state = jax.device_put(initialize(state), sharding)
-    compiled = epoch.lower(state).compile()
+        state, step = programs.init(programs.keys), 0
+        if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
+            state = jax.device_put(initialize(state), programs.sharding)
+    compiled = programs.epoch.lower(state).compile()
     log(f"compiled in {time.time() - start:.1f} s")
-    return compiled, state, step
+    return compiled, state, step, programs.shards
 
 
 def train(
@@ -438,7 +450,7 @@ def train(
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
-        epoch, state, start_epoch = build(env, run, train_cfg, net, resume, initialize=initialize)
+        epoch, state, start_epoch, shards = build(env, run, train_cfg, net, resume, initialize=initialize)
         cfg = config_lib.to_dict(run, train_cfg, net)
         if main:
             os.makedirs(run.run_dir, exist_ok=True)
@@ -471,7 +483,7 @@ def train(
                 # read once: a signal arriving after this waits for the next epoch; one process's stops all
                 signum = multihost.largest(stop.signum or 0) or None
                 if e % run.checkpoint_every == 0 or e == run.epochs or done or signum:
-                    checkpoint.save(mngr, e, state, cfg, row["eval_success"])
+                    checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
                     saved = e
                 if signum:
                     raise Interrupted(signum, e, ckpt_dir)

@@ -18,6 +18,7 @@ from typing import Callable
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 
@@ -96,3 +97,27 @@ def sample(
         batch["image"] = eps["image"][ep, t]
         batch["next_image"] = eps["image"][ep, t + 1]
     return batch
+
+
+def _slots(capacity: int, shards: int) -> np.ndarray:
+    """For each slot c of the shard-independent order, its index in a buffer kept by `shards`
+    shards, each holding a contiguous block of `capacity / shards` slots: slot c is slot c // k
+    of shard c % k (each shard writes its envs' episodes at the same local position)."""
+    c = np.arange(capacity)
+    return (c % shards) * (capacity // shards) + c // shards
+
+
+def relayout(state: ReplayState, shards_from: int, shards_to: int, axis: int = 0) -> ReplayState:
+    """The buffer kept by `shards_from` env shards (`train.make_train`; one shard's `position`
+    and `size` count its own slots) as `shards_to` shards keep it: the same episodes in the
+    same order of insertion, so that a run resumes on another device count. Episodes lie on
+    `axis` (1 after a seed axis); both shard counts divide the envs per cycle."""
+    if shards_from == shards_to:
+        return state
+    cap = capacity(state) if axis == 0 else jax.tree.leaves(state.episodes)[0].shape[axis]
+    order = _slots(cap, shards_from)[np.argsort(_slots(cap, shards_to))]
+    return ReplayState(
+        episodes=jax.tree.map(lambda x: jnp.take(x, order, axis=axis), state.episodes),
+        position=state.position * shards_from // shards_to,
+        size=state.size * shards_from // shards_to,
+    )

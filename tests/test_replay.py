@@ -70,3 +70,34 @@ def test_her_goals_are_the_desired_and_future_achieved_goals_the_critic_sees():
     mixed = np.asarray(replay.her_goals(episodes, key, 1000, future_p=0.8))
     share = (mixed[:, 0] != -7.0).mean()
     assert 0.75 < share < 0.85
+
+
+def _sharded_buffer(shards, capacity, envs, cycles):
+    """A buffer as `shards` env shards keep it (each its own contiguous block, `train.make_seeded`)
+    after `cycles` inserts of `envs` episodes; episode (cycle c, shard d, env i) is labelled
+    100c + 10d + i in its achieved goal."""
+    blocks = []
+    for d in range(shards):
+        state = replay.init(capacity // shards, jax.tree.map(lambda x: x[0], _episodes(1, 0)))
+        for c in range(cycles):
+            state = replay.insert(state, _episodes(envs // shards, 100 * c + 10 * d))
+        blocks.append(state)
+    return replay.ReplayState(
+        episodes=jax.tree.map(lambda *x: jnp.concatenate(x), *[b.episodes for b in blocks]),
+        position=blocks[0].position, size=blocks[0].size,
+    )
+
+
+def test_relayout_keeps_the_episodes_in_insertion_order_for_any_shard_count():
+    two = _sharded_buffer(shards=2, capacity=8, envs=4, cycles=3)  # cycle 2 overwrote cycle 0
+    one = replay.relayout(two, 2, 1)
+    assert int(one.position) == 4 and int(one.size) == 8
+    cycle = np.asarray(one.episodes["achieved_goal"][:, 0, 0]) // 100
+    np.testing.assert_array_equal(cycle, [2, 2, 2, 2, 1, 1, 1, 1])  # the next insert overwrites cycle 1
+    back = replay.relayout(replay.relayout(one, 1, 4), 4, 2)
+    for a, b in zip(jax.tree.leaves(back), jax.tree.leaves(two), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # a buffer not yet full: its episodes are the first `size` slots in one shard's view
+    partial = replay.relayout(_sharded_buffer(shards=4, capacity=16, envs=4, cycles=2), 4, 1)
+    assert int(partial.size) == 8 and int(partial.position) == 8
+    np.testing.assert_array_equal(np.asarray(partial.episodes["achieved_goal"][:8, 0, 0]) // 100, [0] * 4 + [1] * 4)

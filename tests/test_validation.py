@@ -223,7 +223,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
 
     def poisoning_build(*args, **kwargs):
         """The real program, but the 3rd epoch returns a NaN in the critic."""
-        epoch, state, step = real_build(*args, **kwargs)
+        epoch, state, step, shards = real_build(*args, **kwargs)
         calls = []
 
         def poisoned(state):
@@ -234,7 +234,7 @@ def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tm
                 state = state.replace(params={**state.params, "critic": critic})
             return state, metrics
 
-        return poisoned, state, step
+        return poisoned, state, step, shards
 
     monkeypatch.setattr(loop, "build", poisoning_build)
     run_dir = tmp_path / "run"
