@@ -119,6 +119,11 @@ class RunConfig:
     seed: int = doc(0, "first random seed; seeds use seed, seed+1, ...")
     epochs: int = doc(20, "training epochs")
     checkpoint_every: int = doc(5, "save a checkpoint every K epochs (and at the end)")
+    env_shards: int = doc(
+        1,
+        "at most this many devices split each seed's envs (of the devices the seeds leave free; gradients "
+        "averaged across them); 1: none. Tested on CPU devices; XLA's GPU compiler crashed on its program on H200s",
+    )
     run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>")
     target_success: float = doc(0.0, "stop early once the mean eval success reaches this (0: never)")
     init_from: str = doc(

@@ -203,7 +203,7 @@ def prepare(
     validate.check_env_support(configs[1], env)
     from bidal_jax.train import device_layout
 
-    per_device = state_bytes(env, *configs) // len(device_layout(configs[0].seeds, configs[1])[0])
+    per_device = state_bytes(env, *configs) // len(device_layout(configs[0].seeds, configs[1], configs[0].env_shards)[0])
     check_memory(per_device, device_memory(), configs[0].seeds)
     if configs[0].init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(env, *configs, make_env=make_env)
@@ -385,7 +385,7 @@ class Programs(NamedTuple):
 def _programs(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig) -> Programs:
     from bidal_jax.train import device_layout, make_seeded, make_train, seed_sharding
 
-    devices, shards = device_layout(run.seeds, train_cfg)
+    devices, shards = device_layout(run.seeds, train_cfg, run.env_shards)
     init, epoch = make_seeded(*make_train(env, config_lib.agent_spec(run.agent), net, train_cfg, shards), devices, shards)
     keys = jax.random.split(jax.random.PRNGKey(run.seed), run.seeds)
     return Programs(init, epoch, keys, seed_sharding(devices, shards), devices, shards)

@@ -241,18 +241,20 @@ def seed_devices(seeds: int, devices: Sequence[jax.Device] | None = None) -> lis
     return [d for own in owned for d in own[:per_process]]
 
 
-def device_layout(seeds: int, config: TrainConfig, devices: Sequence[jax.Device] | None = None) -> tuple[list, int]:
+def device_layout(
+    seeds: int, config: TrainConfig, max_shards: int = 1, devices: Sequence[jax.Device] | None = None
+) -> tuple[list, int]:
     """(the devices of a run, its env shards k): `seed_devices` hold the seeds, and each seed
-    device's process lends it, of the devices left over, the most that divide the envs,
-    evaluation envs and batch (k - 1 of them; k = 1 with observation noise, see `make_train`).
-    The devices come seed device by seed device, each followed by its shards' others. One
-    process with 4 devices, 16 envs: 1 seed on 4 × 4 shards, 2 seeds on 2 × 2, 4 on 4 × 1;
-    with 6 envs, 1 seed on 2 × 2."""
+    device's process lends it, of the devices left over, the most (k - 1, k ≤ `max_shards`)
+    such that k divides the envs, evaluation envs and batch (k = 1 with observation noise, see
+    `make_train`). The devices come seed device by seed device, each followed by its shards'
+    others. One process with 4 devices, 16 envs, `max_shards` 4: 1 seed on 4 × 4 shards,
+    2 seeds on 2 × 2, 4 on 4 × 1; with 6 envs, 1 seed on 2 × 2."""
     devices = list(jax.devices() if devices is None else devices)
     processes = sorted({d.process_index for d in devices})
     owned = [[d for d in devices if d.process_index == p] for p in processes]
     per_process = len(seed_devices(seeds, devices)) // len(processes)
-    spare = min(len(own) for own in owned) // per_process
+    spare = min(min(len(own) for own in owned) // per_process, max_shards)
     divisor = 1 if config.noise_segments else math.gcd(config.num_envs, config.eval_envs, config.batch_size)
     shards = max(k for k in range(1, spare + 1) if divisor % k == 0)
     return [d for own in owned for d in own[:per_process * shards]], shards

@@ -3,9 +3,9 @@
 `check(run, train, net, env_names=...)` raises `ConfigError` whose
 message is one line naming the bad value (as its command-line option) and what is
 allowed, e.g. `--gamma 1.5: must be in (0, 1)`. Every config field has a rule in
-`RULES`; the cross-field rules follow (replay capacity, device sharding). Pure: the
-facts it needs from outside (registered envs, device count) are arguments, so that
-this module imports neither the environments nor a device.
+`RULES`; the cross-field rules follow (replay capacity). Pure: the facts it needs from
+outside (registered envs) are arguments, so that this module imports neither the
+environments nor a device. How many devices a run takes is `train.device_layout`'s choice.
 """
 
 from __future__ import annotations
@@ -74,6 +74,7 @@ RULES: dict[str, Rule] = {
     "seed": (int, lambda v: 0 <= v < 2**32, "an integer in [0, 2^32)"),
     "epochs": _POS_INT,
     "checkpoint_every": _POS_INT,
+    "env_shards": _POS_INT,
     "run_dir": (str, _anything, "a path"),
     "target_success": _PROB,
     "init_from": (str, _anything, "RUN_DIR or RUN_DIR:CHECKPOINT"),

@@ -25,7 +25,7 @@ import numpy as np
 import envs_mjx
 from bidal_jax import acting
 from bidal_jax.config import NetworkConfig, TrainConfig, agent_spec, env_preset
-from bidal_jax.train import make_seeded, make_train
+from bidal_jax.train import device_layout, make_seeded, make_train
 
 
 def _timed(fn, repeats: int) -> float:
@@ -84,15 +84,20 @@ def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int
     return config.cycles_per_epoch * num_envs * env.episode_length / seconds
 
 
-def sharded_training(name: str, agent: str, seeds: int, n_devices: int, repeats: int) -> dict[str, float]:
-    """Training throughput of `seeds` vmapped seeds of the env's preset, sharded over the first
-    `n_devices` devices: env steps per second with learning, and seconds per epoch."""
+def sharded_training(
+    name: str, agent: str, seeds: int, n_devices: int, repeats: int, env_shards: int = 1
+) -> dict[str, float]:
+    """Training throughput of `seeds` vmapped seeds of the env's preset on the first `n_devices`
+    devices, laid out as a run lays them out (`train.device_layout`: seeds over devices, up to
+    `env_shards` of the devices left over splitting each seed's envs): env steps per second with
+    learning, and seconds per epoch."""
     spec = agent_spec(agent)
     preset = env_preset(name, agent)
     config = TrainConfig(**preset.get("train", {}))
     env = envs_mjx.make(name, render=spec.uses_image)
-    devices = jax.devices()[:n_devices]
-    init, epoch = make_seeded(*make_train(env, spec, NetworkConfig(**preset.get("network", {})), config), devices)
+    devices, shards = device_layout(seeds, config, env_shards, jax.devices()[:n_devices])
+    net = NetworkConfig(**preset.get("network", {}))
+    init, epoch = make_seeded(*make_train(env, spec, net, config, shards), devices, shards)
     start = time.perf_counter()
     holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), seeds))}
 
@@ -104,7 +109,7 @@ def sharded_training(name: str, agent: str, seeds: int, n_devices: int, repeats:
     compile_seconds = time.perf_counter() - start
     seconds = _timed(one_epoch, repeats)
     steps = seeds * config.cycles_per_epoch * config.num_envs * env.episode_length
-    return {"devices": n_devices, "seeds": seeds, "epoch_seconds": seconds, "env_steps_per_second": steps / seconds,
+    return {"devices": len(devices), "env_shards": shards, "seeds": seeds, "epoch_seconds": seconds, "env_steps_per_second": steps / seconds,
             "compile_and_first_epoch_seconds": compile_seconds}
 
 
@@ -143,9 +148,12 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip-native", action="store_true", help="skip native MuJoCo")
     parser.add_argument("--json", default="", help="also write the figures to this JSON file")
     parser.add_argument("--devices", nargs="+", type=int, default=None,
-                        help="instead: training throughput of --seeds seeds of the first env's preset sharded over "
-                        "each of these device counts (e.g. 1 2 4), with --agent")
+                        help="instead: training throughput of --seeds seeds of the first env's preset on each of "
+                        "these device counts (e.g. 1 2 4), with --agent: seeds over devices (and --env-shards), "
+                        "as a run lays them out")
     parser.add_argument("--seeds", type=int, default=8, help="seeds of the --devices benchmark")
+    parser.add_argument("--env-shards", type=int, default=1,
+                        help="--devices benchmark: at most this many devices split each seed's envs (as a run's --env-shards)")
     args = parser.parse_args(argv)
 
     device = jax.devices()[0]
@@ -177,20 +185,21 @@ def main(argv: list[str] | None = None) -> None:
 
 def scaling(args: argparse.Namespace) -> None:
     """The --devices benchmark: one row per device count, with the speed-up over the first row."""
-    bad = [n for n in args.devices if not 1 <= n <= jax.device_count() or args.seeds % n]
+    bad = [n for n in args.devices if not 1 <= n <= jax.device_count()]
     if bad:
         raise SystemExit(f"error: --devices {bad[0]}: must be between 1 and the {jax.device_count()} visible "
-                         f"device(s) and divide --seeds {args.seeds}")
+                         f"device(s)")
     rows = []
     for n in args.devices:
-        rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats))
+        rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats, args.env_shards))
         print(json.dumps(rows[-1]), flush=True)
     base = rows[0]
     print(f"\n{args.envs[0]} {args.agent}, {args.seeds} seeds: training throughput by device count\n")
-    print("| devices | s / epoch | env steps / s (with learning) | speed-up | scaling efficiency |\n| --- | --- | --- | --- | --- |")
+    print("| devices | env shards per seed | s / epoch | env steps / s (with learning) | speed-up | scaling efficiency |\n"
+          "| --- | --- | --- | --- | --- | --- |")
     for row in rows:
         speedup = row["env_steps_per_second"] / base["env_steps_per_second"]
-        print(f"| {row['devices']} | {row['epoch_seconds']:.2f} | {row['env_steps_per_second']:,.0f} | {speedup:.2f}× | "
+        print(f"| {row['devices']} | {row['env_shards']} | {row['epoch_seconds']:.2f} | {row['env_steps_per_second']:,.0f} | {speedup:.2f}× | "
               f"{speedup * base['devices'] / row['devices']:.0%} |")
     if args.json:
         with open(args.json, "w") as f:

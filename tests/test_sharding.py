@@ -51,14 +51,16 @@ def test_seeds_spread_over_as_many_devices_as_divide_them():
 def test_devices_the_seeds_leave_split_their_envs():
     devices = [types.SimpleNamespace(process_index=0, name=f"d{i}") for i in range(4)]
     config = TrainConfig(num_envs=16, eval_envs=64, batch_size=256)
-    assert device_layout(1, config, devices) == (devices, 4)
-    assert device_layout(2, config, devices) == (devices, 2)
-    assert device_layout(3, config, devices) == (devices, 4)  # 3 seeds on one row of 4 shards
-    assert device_layout(4, config, devices) == (devices, 1)
-    assert device_layout(1, TrainConfig(num_envs=6, eval_envs=64, batch_size=256), devices) == (devices[:2], 2)
-    assert device_layout(1, TrainConfig(num_envs=16, noise_segments="joint_pos"), devices) == (devices[:1], 1)
+    assert device_layout(1, config, 4, devices) == (devices, 4)
+    assert device_layout(2, config, 4, devices) == (devices, 2)
+    assert device_layout(3, config, 4, devices) == (devices, 4)  # 3 seeds on one row of 4 shards
+    assert device_layout(4, config, 4, devices) == (devices, 1)
+    assert device_layout(1, TrainConfig(num_envs=6, eval_envs=64, batch_size=256), 4, devices) == (devices[:2], 2)
+    assert device_layout(1, TrainConfig(num_envs=16, noise_segments="joint_pos"), 4, devices) == (devices[:1], 1)
     two_hosts = [types.SimpleNamespace(process_index=p, name=f"d{p}{i}") for p in (0, 1) for i in (0, 1)]
-    assert device_layout(2, config, two_hosts) == (two_hosts, 2)
+    assert device_layout(2, config, 2, two_hosts) == (two_hosts, 2)
+    assert device_layout(1, config, 1, devices) == (devices[:1], 1)  # the default: no env shards
+    assert device_layout(1, config, 2, devices) == (devices[:2], 2)
 
 
 @pytest.mark.slow
@@ -84,7 +86,7 @@ import envs_mjx
 from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
 from bidal_jax.train import device_layout, make_seeded, make_train
 config = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
-devices, shards = device_layout(1, config)
+devices, shards = device_layout(1, config, 4)
 assert shards == 4, shards
 env = envs_mjx.make("planar_reach", render=False)
 init, epoch = make_seeded(*make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), config, shards), devices, shards)
@@ -103,7 +105,7 @@ def test_one_seeds_envs_split_over_four_devices_share_parameters_and_resume_on_o
     proc = subprocess.run([sys.executable, "-c", ENV_SHARDS], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     run_dir = str(tmp_path / "split")
-    one_seed = [*TINY[:-4], "--seeds", "1", "--checkpoint-every", "1"]
+    one_seed = [*TINY[:-4], "--seeds", "1", "--checkpoint-every", "1", "--env-shards", "4"]
     proc = subprocess.run([sys.executable, "-m", "experiments.run", *one_seed, "--epochs", "2", "--run-dir", run_dir],
                           cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
