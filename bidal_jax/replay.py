@@ -114,7 +114,7 @@ def relayout(state: ReplayState, shards_from: int, shards_to: int, axis: int = 0
     `axis` (1 after a seed axis); both shard counts divide the envs per cycle."""
     if shards_from == shards_to:
         return state
-    cap = capacity(state) if axis == 0 else jax.tree.leaves(state.episodes)[0].shape[axis]
+    cap = jax.tree.leaves(state.episodes)[0].shape[axis]
     order = _slots(cap, shards_from)[np.argsort(_slots(cap, shards_to))]
     return ReplayState(
         episodes=jax.tree.map(lambda x: jnp.take(x, order, axis=axis), state.episodes),

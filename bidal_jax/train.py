@@ -66,7 +66,7 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
 
     With `env_shards` k > 1 the functions are one shard's part of a `shard_map` over the mesh
     axis `ENV_AXIS` (`make_seeded`): k divides the envs, evaluation envs, batch and buffer
-    (`validate.check_env_shards`); each shard draws its own keys (`fold_in` of the shard index)
+    (`device_layout` picks such a k); each shard draws its own keys (`fold_in` of the shard index)
     and the shards agree through collectives: gradients and metrics are averaged, the
     normalisers see every shard's data. Same algorithm as k = 1, with other random draws.
     """
@@ -82,8 +82,8 @@ def make_train(env, agent: AgentSpec, net_config: NetworkConfig, config: TrainCo
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
     noisy = noise.feature_indices(spec.proprio_segments, noise.parse_segments(config.noise_segments))
     if len(noisy) and env_shards > 1:  # σ is a quantile of the whole buffer, which no shard holds
-        raise ConfigError(f"--noise-segments {config.noise_segments!r} runs on unsharded envs only: "
-                          f"use as many devices as seeds (here {env_shards} env shards)")
+        raise ConfigError(f"--noise-segments {config.noise_segments!r} runs with 1 env shard only "
+                          f"(here {env_shards}; `device_layout` gives 1)")
     n_envs, n_eval, n_batch = (n // env_shards for n in (config.num_envs, config.eval_envs, config.batch_size))
 
     def own_key(key):
@@ -232,13 +232,17 @@ def seed_devices(seeds: int, devices: Sequence[jax.Device] | None = None) -> lis
     all, of every process), as many as divide that process's share of the seeds evenly (one process
     with 4 GPUs: 8 seeds on 4, 6 on 2, 1 seed on 1; two with 2 devices each: 4 seeds on 2 + 2).
     Raises ConfigError when the processes cannot hold equal shares."""
-    devices = list(jax.devices() if devices is None else devices)
-    processes = sorted({d.process_index for d in devices})
-    if seeds % len(processes):
-        raise ConfigError(f"--seeds {seeds}: must be a multiple of the {len(processes)} processes (each holds as many seeds)")
-    owned = [[d for d in devices if d.process_index == p] for p in processes]
-    per_process = math.gcd(seeds // len(processes), min(len(own) for own in owned))
+    owned = _by_process(devices)
+    if seeds % len(owned):
+        raise ConfigError(f"--seeds {seeds}: must be a multiple of the {len(owned)} processes (each holds as many seeds)")
+    per_process = math.gcd(seeds // len(owned), min(len(own) for own in owned))
     return [d for own in owned for d in own[:per_process]]
+
+
+def _by_process(devices: Sequence[jax.Device] | None) -> list[list[jax.Device]]:
+    """`devices` (default: all, of every process) grouped by process, in process order."""
+    devices = list(jax.devices() if devices is None else devices)
+    return [[d for d in devices if d.process_index == p] for p in sorted({d.process_index for d in devices})]
 
 
 def device_layout(
@@ -250,10 +254,8 @@ def device_layout(
     `make_train`). The devices come seed device by seed device, each followed by its shards'
     others. One process with 4 devices, 16 envs, `max_shards` 4: 1 seed on 4 × 4 shards,
     2 seeds on 2 × 2, 4 on 4 × 1; with 6 envs, 1 seed on 2 × 2."""
-    devices = list(jax.devices() if devices is None else devices)
-    processes = sorted({d.process_index for d in devices})
-    owned = [[d for d in devices if d.process_index == p] for p in processes]
-    per_process = len(seed_devices(seeds, devices)) // len(processes)
+    owned = _by_process(devices)
+    per_process = len(seed_devices(seeds, devices)) // len(owned)
     spare = min(min(len(own) for own in owned) // per_process, max_shards)
     divisor = 1 if config.noise_segments else math.gcd(config.num_envs, config.eval_envs, config.batch_size)
     shards = max(k for k in range(1, spare + 1) if divisor % k == 0)

@@ -23,7 +23,7 @@ import jax
 import numpy as np
 
 import envs_mjx
-from bidal_jax import acting
+from bidal_jax import acting, validate
 from bidal_jax.config import NetworkConfig, TrainConfig, agent_spec, env_preset
 from bidal_jax.train import device_layout, make_seeded, make_train
 
@@ -189,6 +189,10 @@ def scaling(args: argparse.Namespace) -> None:
     if bad:
         raise SystemExit(f"error: --devices {bad[0]}: must be between 1 and the {jax.device_count()} visible "
                          f"device(s)")
+    try:
+        validate.check_field("env_shards", args.env_shards)
+    except validate.ConfigError as err:
+        raise SystemExit(f"error: {err}") from err
     rows = []
     for n in args.devices:
         rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats, args.env_shards))
