@@ -20,6 +20,7 @@ sees an env only through its functional API (`reset`, `step`, `episode_length`,
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from typing import Any, Callable, NamedTuple
 
@@ -112,14 +113,23 @@ def open_loop(obs: dict, action: jax.Array) -> jax.Array:
     return action
 
 
+@functools.lru_cache(maxsize=16)
+def traced_once(env_fn: Callable) -> Callable:
+    """`jax.jit(env_fn)`, the same object for each env function (a bound method: `env.step`, `env.reset`), so
+    that every rollout of a program reuses its jaxpr from JAX's trace cache: a training epoch traces the
+    physics once for its exploring and evaluation rollouts, not once for each. Inside a program the jit is
+    inlined; the computation is the same."""
+    return jax.jit(env_fn)
+
+
 def start_states(env, key: jax.Array, n_envs: int, exploration_starts: float = 0.0):
     """`n_envs` initial states from `env.reset`, a fraction `exploration_starts` of them (drawn at
     random) from `env.exploration_reset` instead (e.g. nicol_lift's cube already held)."""
     if exploration_starts <= 0:
-        return jax.vmap(env.reset)(jax.random.split(key, n_envs))
+        return jax.vmap(traced_once(env.reset))(jax.random.split(key, n_envs))
     key_reset, key_eased, key_pick = jax.random.split(key, 3)
-    state = jax.vmap(env.reset)(jax.random.split(key_reset, n_envs))
-    eased = jax.vmap(env.exploration_reset)(jax.random.split(key_eased, n_envs))
+    state = jax.vmap(traced_once(env.reset))(jax.random.split(key_reset, n_envs))
+    eased = jax.vmap(traced_once(env.exploration_reset))(jax.random.split(key_eased, n_envs))
     pick = jax.random.uniform(key_pick, (n_envs,)) < exploration_starts
     return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
 
@@ -168,7 +178,7 @@ def rollout(
         key, x = xs
         obs = state.obs if observe is None else observe(state.obs, jax.random.fold_in(key, 1))
         action = policy(obs, x)
-        next_state = jax.vmap(env.step)(state, action)
+        next_state = jax.vmap(traced_once(env.step))(state, action)
         return next_state, record(Step(state, obs, action, next_state))
 
     return jax.lax.scan(body, states, (keys, keys if inputs is None else inputs))

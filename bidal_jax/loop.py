@@ -296,23 +296,26 @@ def epoch_row(epoch: int, metrics: dict, wall: float, epoch_seconds: float, step
 # ----- the divergence guard and signals ---------------------------------------------------
 
 
-def finite_flags(state) -> dict:
-    """Per seed, whether each parameter group holds only finite values: {"params/actor": bool[S], ...}.
-
-    Cheap enough to run (jitted) after every epoch; the replay buffer is not scanned.
-    """
-    groups = {
+def guarded(state) -> dict:
+    """The parts of a training state that the divergence guard checks, by name: {"params/actor": tree, ...};
+    not the replay buffer, so that fetching them after every epoch is cheap."""
+    return {
         **{f"params/{k}": v for k, v in state.params.items()},
         **{f"target_params/{k}": v for k, v in state.target_params.items()},
         **{f"opt_state/{k}": v for k, v in state.opt_state.items()},
         "proprio_norm": state.proprio_norm,
         "goal_norm": state.goal_norm,
     }
+
+
+def finite_flags(groups: dict) -> dict:
+    """Per seed, whether each group of `guarded` (host arrays with a leading seed axis) holds only
+    finite values: {"params/actor": bool[S], ...}. Numpy on the host: no program to compile."""
     flags = {}
     for name, tree in groups.items():
         leaves = [x for x in jax.tree.leaves(tree) if jnp.issubdtype(x.dtype, jnp.floating)]
         if leaves:
-            flags[name] = jnp.stack([jnp.isfinite(x).reshape(x.shape[0], -1).all(axis=1) for x in leaves]).all(axis=0)
+            flags[name] = np.stack([np.isfinite(x).reshape(x.shape[0], -1).all(axis=1) for x in leaves]).all(axis=0)
     return flags
 
 
@@ -457,7 +460,6 @@ def train(
             _write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
         log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
         mngr = checkpoint.manager(ckpt_dir)
-        finite = jax.jit(finite_flags)
 
         row = log.last_row
         wall_before = row.get("wall_time", 0.0)
@@ -474,7 +476,7 @@ def train(
                 row = epoch_row(e, metrics, wall_before + time.time() - start, time.time() - t, steps_before)
                 steps_before = row["env_steps_total"]
                 log.write(row)
-                bad = divergence(metrics, multihost.to_host(finite(state)))
+                bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
                     last = f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
                     raise Diverged(f"diverged at epoch {e}: {bad}; {last}")

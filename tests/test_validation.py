@@ -218,6 +218,15 @@ def test_divergence_names_epoch_quantity_and_seed():
     assert loop.divergence({"critic_loss": np.array([0.3, 0.1])}, {"params/actor": np.array([True, True])}) is None
 
 
+def test_finite_flags_per_group_and_seed_on_host_arrays():
+    groups = {
+        "params/critic": {"w": np.array([[1.0, np.inf], [2.0, 3.0]], np.float32), "step": np.array([1, 2])},
+        "goal_norm": {"count": np.array([4, 5])},  # no floating leaf: not checked
+    }
+    flags = loop.finite_flags(groups)
+    assert list(flags) == ["params/critic"] and flags["params/critic"].tolist() == [False, True]
+
+
 def test_non_finite_parameters_stop_the_run_and_keep_the_last_good_checkpoint(tmp_path, monkeypatch, capsys):
     real_build = loop.build
 
