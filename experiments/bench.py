@@ -18,6 +18,7 @@ import dataclasses
 import json
 import statistics
 import time
+from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -84,13 +85,19 @@ def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int
     return config.cycles_per_epoch * num_envs * env.episode_length / seconds
 
 
-def sharded_training(
-    name: str, agent: str, seeds: int, n_devices: int, repeats: int, env_shards: int = 1
-) -> dict[str, float]:
-    """Training throughput of `seeds` vmapped seeds of the env's preset on the first `n_devices`
-    devices, laid out as a run lays them out (`train.device_layout`: seeds over devices, up to
-    `env_shards` of the devices left over splitting each seed's envs): env steps per second with
-    learning, and seconds per epoch."""
+class SeededProgram(NamedTuple):
+    """`make_seeded`'s init and epoch, with what they were built from and laid out on."""
+    init: Callable
+    epoch: Callable
+    config: TrainConfig
+    env: Any
+    devices: list
+    shards: int
+
+
+def seeded_program(name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1) -> SeededProgram:
+    """The training program of `seeds` vmapped seeds of the env's preset for `agent` on the first
+    `n_devices` devices, laid out as a run lays them out (`train.device_layout`)."""
     spec = agent_spec(agent)
     preset = env_preset(name, agent)
     config = TrainConfig(**preset.get("train", {}))
@@ -98,6 +105,17 @@ def sharded_training(
     devices, shards = device_layout(seeds, config, env_shards, jax.devices()[:n_devices])
     net = NetworkConfig(**preset.get("network", {}))
     init, epoch = make_seeded(*make_train(env, spec, net, config, shards), devices, shards)
+    return SeededProgram(init, epoch, config, env, devices, shards)
+
+
+def sharded_training(
+    name: str, agent: str, seeds: int, n_devices: int, repeats: int, env_shards: int = 1
+) -> dict[str, float]:
+    """Training throughput of `seeds` vmapped seeds of the env's preset on the first `n_devices`
+    devices, laid out as a run lays them out (`train.device_layout`: seeds over devices, up to
+    `env_shards` of the devices left over splitting each seed's envs): env steps per second with
+    learning, and seconds per epoch."""
+    init, epoch, config, env, devices, shards = seeded_program(name, agent, seeds, n_devices, env_shards)
     start = time.perf_counter()
     holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), seeds))}
 
