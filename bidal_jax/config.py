@@ -122,7 +122,7 @@ class RunConfig:
     env_shards: int = doc(
         1,
         "at most this many devices split each seed's envs (of the devices the seeds leave free; gradients "
-        "averaged across them); 1: none. Tested on CPU devices; XLA's GPU compiler crashed on its program on H200s",
+        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (README: Several devices)",
     )
     run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>")
     target_success: float = doc(0.0, "stop early once the mean eval success reaches this (0: never)")
