@@ -28,7 +28,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from bidal_jax import checkpoint, config as config_lib, normalizer
+from bidal_jax import config as config_lib, normalizer
+from bidal_jax.run import checkpoint
 from bidal_jax.config import AgentSpec, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
 

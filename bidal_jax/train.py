@@ -29,7 +29,7 @@ from bidal_jax import acting, noise, normalizer, replay
 from bidal_jax.config import AgentSpec, NetworkConfig, TrainConfig
 from bidal_jax.losses import make_losses
 from bidal_jax.networks import make_networks
-from bidal_jax.validate import ConfigError, check_env_support
+from bidal_jax.run.validate import ConfigError, check_env_support
 
 SEED_AXIS, ENV_AXIS = "seeds", "envs"  # the device mesh's axes (`make_seeded`)
 

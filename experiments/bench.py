@@ -24,7 +24,8 @@ import jax
 import numpy as np
 
 import envs_mjx
-from bidal_jax import acting, validate
+from bidal_jax import acting
+from bidal_jax.run import validate
 from bidal_jax.config import NetworkConfig, TrainConfig, agent_spec, env_preset
 from bidal_jax.train import device_layout, make_seeded, make_train
 

@@ -25,7 +25,7 @@ import time
 import jax
 
 import envs_mjx
-from bidal_jax import validate
+from bidal_jax.run import validate
 from bidal_jax.config import AGENTS
 from experiments.bench import seeded_program
 

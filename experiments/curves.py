@@ -49,9 +49,9 @@ import os
 import sys
 from typing import Any, Sequence
 
-from bidal_jax import multihost
+from bidal_jax.run import multihost
 from bidal_jax.config import AGENTS, agent_spec
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 from experiments import grid, plot, run as run_cli
 from experiments.grid import Arm
 

@@ -27,7 +27,7 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax import acting
-from bidal_jax.checkpoint import CheckpointError
+from bidal_jax.run.checkpoint import CheckpointError
 
 EXIT_BAD_INPUT = 2
 Z95 = 1.959963984540054

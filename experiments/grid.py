@@ -19,10 +19,11 @@ import sys
 from typing import Any, Callable, Sequence
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop, transfer, validate
-from bidal_jax.checkpoint import CheckpointError
+from bidal_jax import config as config_lib
+from bidal_jax.run import checkpoint, loop, transfer, validate
+from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.config import NetworkConfig, TrainConfig
-from bidal_jax.validate import ConfigError, option
+from bidal_jax.run.validate import ConfigError, option
 from experiments import plot, run as run_cli
 
 # what passes through to every run: the learner and network options (the exploration starts are

@@ -30,8 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs_mjx
-from bidal_jax import config as config_lib, loop, multihost
-from bidal_jax.validate import ConfigError
+from bidal_jax import config as config_lib
+from bidal_jax.run import loop, multihost
+from bidal_jax.run.validate import ConfigError
 from experiments import grid, plot, run as run_cli
 from experiments.grid import Arm
 

@@ -33,10 +33,11 @@ import os
 import sys
 
 import envs_mjx
-from bidal_jax import config as config_lib, loop, multihost, transfer
-from bidal_jax.checkpoint import CheckpointError
+from bidal_jax import config as config_lib
+from bidal_jax.run import loop, multihost, transfer
+from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.config import AGENTS, CONFIG_CLASSES, fields_help
-from bidal_jax.validate import ConfigError, option
+from bidal_jax.run.validate import ConfigError, option
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3

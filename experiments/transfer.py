@@ -46,9 +46,10 @@ import os
 import sys
 from typing import Any, Sequence
 
-from bidal_jax import config as config_lib, multihost
+from bidal_jax import config as config_lib
+from bidal_jax.run import multihost
 from bidal_jax.config import RunConfig
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 from experiments import grid, plot, run as run_cli
 from experiments.grid import Arm
 

@@ -33,10 +33,10 @@ import numpy as np
 import optax
 
 import envs_mjx
-from bidal_jax import validate
+from bidal_jax.run import validate
 from bidal_jax.config import NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 from experiments import grid
 
 PROG = "python -m experiments.vision_probe"

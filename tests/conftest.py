@@ -44,7 +44,8 @@ def no_nicol(monkeypatch):
     import types
 
     import envs_mjx
-    from bidal_jax import config as config_lib, loop
+    from bidal_jax import config as config_lib
+    from bidal_jax.run import loop
 
     calls = []
     monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(

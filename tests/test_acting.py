@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax import acting, checkpoint
+from bidal_jax import acting
+from bidal_jax.run import checkpoint
 from experiments import evaluate, run
 
 SEEDS, EPOCHS = 2, 4

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from bidal_jax import checkpoint
+from bidal_jax.run import checkpoint
 from experiments import run
 
 TINY = [

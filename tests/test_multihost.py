@@ -11,9 +11,10 @@ import types
 
 import pytest
 
-from bidal_jax import acting, multihost
+from bidal_jax import acting
+from bidal_jax.run import multihost
 from bidal_jax.train import seed_devices
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 from experiments import run
 from test_sharding import REPO, TINY, assert_same_metrics, rows
 

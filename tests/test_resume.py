@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop
+from bidal_jax import config as config_lib
+from bidal_jax.run import checkpoint, loop
 from experiments import run
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -10,7 +10,7 @@ import pytest
 import envs_mjx
 from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
 from bidal_jax.train import make_seeded, make_train
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 from envs_mjx.planar_reach import PlanarReach
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)

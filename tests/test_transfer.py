@@ -21,7 +21,8 @@ import pytest
 from test_validation import assert_refused
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop, transfer
+from bidal_jax import config as config_lib
+from bidal_jax.run import checkpoint, loop, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 from experiments import grid, run, transfer as experiment

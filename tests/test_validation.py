@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop, validate
+from bidal_jax import config as config_lib
+from bidal_jax.run import checkpoint, loop, validate
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from experiments import run
 

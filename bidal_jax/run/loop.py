@@ -31,10 +31,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import checkpoint, config as config_lib, multihost, transfer, validate
-from bidal_jax.checkpoint import CheckpointError
+from bidal_jax import config as config_lib
+from bidal_jax.run import checkpoint, multihost, transfer, validate
+from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
-from bidal_jax.validate import ConfigError, option
+from bidal_jax.run.validate import ConfigError, option
 
 EXIT_ON_SIGNAL = {signal.SIGINT: 130, signal.SIGTERM: 143}
 # fields whose value on resume may differ from the checkpoint's

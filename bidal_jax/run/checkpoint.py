@@ -30,7 +30,8 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from bidal_jax import multihost, replay
+from bidal_jax import replay
+from bidal_jax.run import multihost
 
 
 class CheckpointError(Exception):

@@ -29,7 +29,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 
 # an explicit launch: the coordinator's host:port (read by jax.distributed itself), the process
 # count and this process's index (read here: JAX 0.10 reads neither from the environment)

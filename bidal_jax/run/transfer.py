@@ -46,11 +46,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import checkpoint, config as config_lib, noise, normalizer
-from bidal_jax.checkpoint import CheckpointError, leaf_name
+from bidal_jax import config as config_lib, noise, normalizer
+from bidal_jax.run import checkpoint
+from bidal_jax.run.checkpoint import CheckpointError, leaf_name
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.networks import PROPRIO_LAYER
-from bidal_jax.validate import ConfigError
+from bidal_jax.run.validate import ConfigError
 
 Segments = Sequence[tuple[str, int]]
 PROPRIO_KERNEL = f"params/encoder/params/{PROPRIO_LAYER}/kernel"
