@@ -1,4 +1,4 @@
-"""Orbax checkpoints of the whole `TrainState` plus the run's config (DESIGN.md).
+"""Orbax checkpoints of the whole `TrainState` plus the run's config.
 
 A checkpoint directory `<run>/checkpoints/<epoch>/` holds four items: `state` (all
 parameters, optimiser states, targets, normalisers, rng, counters), `buffer` (the replay

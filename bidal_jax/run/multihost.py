@@ -3,7 +3,7 @@
 `initialize()` starts JAX's distributed runtime when the environment asks for it
 (`distributed_args`), before anything touches a device; every command line and experiment
 script calls it first. Then `jax.devices()` lists the devices of every process, the seed
-axis spans them (`train.seed_devices`), and each process runs the same program on its own
+axis spans them (`devices.seed_devices`), and each process runs the same program on its own
 seeds. What the loop needs around that, each the plain single-process operation when there
 is one process (no collective runs, nothing changes):
 
@@ -29,7 +29,7 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from bidal_jax.run.validate import ConfigError
+from bidal_jax.config import ConfigError
 
 # an explicit launch: the coordinator's host:port (read by jax.distributed itself), the process
 # count and this process's index (read here: JAX 0.10 reads neither from the environment)

@@ -31,7 +31,7 @@ source must have at least as many seeds (extra source seeds are not used).
 
 Everything else must match by name and shape: a subtree the source or the new run lacks,
 a leaf of another shape or dtype, a target segment the source lacks. `check` (called by
-`loop.prepare`, before anything is compiled or written) and the initializer refuse them
+`preflight.prepare`, before anything is compiled or written) and the initializer refuse them
 with a one-line `CheckpointError` naming the leaf and both shapes.
 """
 
@@ -46,12 +46,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import config as config_lib, noise, normalizer
+from bidal_jax import noise, normalizer
+from bidal_jax.config import Config, ConfigError, ConfigFormatError, RunConfig
+from bidal_jax.networks import PROPRIO_LAYER
 from bidal_jax.run import checkpoint
 from bidal_jax.run.checkpoint import CheckpointError, leaf_name
-from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
-from bidal_jax.networks import PROPRIO_LAYER
-from bidal_jax.run.validate import ConfigError
+from bidal_jax.train import make_train
 
 Segments = Sequence[tuple[str, int]]
 PROPRIO_KERNEL = f"params/encoder/params/{PROPRIO_LAYER}/kernel"
@@ -132,9 +132,9 @@ def plan(run: RunConfig, target: Any, segments: Segments, make_env: Callable[...
     directory = os.path.join(run_dir, "checkpoints")
     try:
         step = checkpoint.resolve_step(directory, step_text)
-        source = config_lib.from_dict(checkpoint.read_config(directory, step), f"checkpoint {step} in {directory}")[0]
+        source = Config.from_dict(checkpoint.read_config(directory, step), f"checkpoint {step} in {directory}").run
         saved = checkpoint.read_metadata(directory, step, ("state",))["state"]
-    except (CheckpointError, config_lib.ConfigFormatError) as err:
+    except (CheckpointError, ConfigFormatError) as err:
         raise CheckpointError(f"{where}: {err}") from err
     seeds = int(target.env_steps.shape[0])
     if source.seeds < seeds:
@@ -211,14 +211,13 @@ def make_initializer(
     return initialize
 
 
-def check(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, make_env: Callable[..., Any]) -> Plan:
-    """The checks of `plan` for a run about to start (`loop.prepare`): traces the run's init, compiles
-    nothing. Raises ConfigError when the source is the run's own directory, else as `plan`."""
-    from bidal_jax.train import make_train
-
+def check(env, config: Config, make_env: Callable[..., Any]) -> Plan:
+    """The checks of `plan` for a run about to start (`preflight.prepare`): traces the run's init,
+    compiles nothing. Raises ConfigError when the source is the run's own directory, else as `plan`."""
+    run = config.run
     source_dir = parse_init_from(run.init_from)[0]
     if os.path.realpath(source_dir) == os.path.realpath(run.run_dir):
         raise ConfigError(f"--init-from {run.init_from}: is this run's own --run-dir; the source must be another run")
-    init, _ = make_train(env, config_lib.agent_spec(run.agent), net, train_cfg)
+    init, _ = make_train(env, config)
     target = jax.eval_shape(jax.vmap(init), jax.ShapeDtypeStruct((run.seeds, 2), jnp.uint32))
     return plan(run, target, env.observation_spec.proprio_segments, make_env)
