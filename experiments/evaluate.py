@@ -1,6 +1,6 @@
 """Evaluate a trained run: `python -m experiments.evaluate --run-dir runs/ur5 [--checkpoint N|best]`.
 
-Restores only what acting needs (`bidal_jax.acting.load_policy`: parameters and
+Restores only what acting needs (`bidal_jax.run.policy.load_policy`: parameters and
 normalisers; the replay buffer is never read), runs `--episodes` deterministic episodes
 per seed and prints each seed's success with a 95 % Wilson interval, and the mean over
 seeds with a 95 % Student-t interval over the seeds (over the episodes when there is one
@@ -28,8 +28,9 @@ import numpy as np
 import envs_mjx
 from bidal_jax import acting
 from bidal_jax.run.checkpoint import CheckpointError
+from bidal_jax.run.policy import TrainedPolicy, load_policy
+from experiments import cli
 
-EXIT_BAD_INPUT = 2
 Z95 = 1.959963984540054
 
 
@@ -52,17 +53,17 @@ def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
     return float(rates.mean()), float(rates.mean() - half), float(rates.mean() + half)
 
 
-def evaluate_seeds(env, trained: acting.TrainedPolicy, keys: jax.Array, episodes: int) -> np.ndarray:
+def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int) -> np.ndarray:
     """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training."""
 
     def one(params, key):
-        policy = acting.make_policy(trained.networks, trained.agent, trained.train, params)
+        policy = acting.make_policy(trained.networks, trained.config, params)
         return acting.evaluate(env, policy, key, episodes)
 
     return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys))
 
 
-def render_video(env, trained: acting.TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
+def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
                  quiet: bool = False) -> int:
     """Write `episodes` episodes of seed 0 to `path`: MuJoCo's render (width × height) beside the
     agent's 42×42 view scaled to the same height. Returns the number of frames written."""
@@ -136,18 +137,18 @@ def main(argv: list[str] | None = None) -> int:
         size = _video_size(args.video_size)
         if not os.path.isdir(args.run_dir):
             raise ValueError(f"--run-dir {args.run_dir}: no such directory")
-        trained = acting.load_policy(args.run_dir, args.checkpoint)
+        trained = load_policy(args.run_dir, args.checkpoint)
     except (ValueError, CheckpointError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    env = envs_mjx.make(trained.run.env, render=trained.agent.uses_image)
+        return cli.exit_code(err)
+    run = trained.config.run
+    env = envs_mjx.make(run.env, render=trained.config.agent.uses_image)
     if args.seed is None:
         keys = trained.eval_key
     else:
         keys = jax.random.split(jax.random.PRNGKey(args.seed), trained.seeds)
     success = evaluate_seeds(env, trained, keys, args.episodes)
     mean, low, high = mean_interval(success)
-    print(f"{trained.run.env} / {trained.run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
+    print(f"{run.env} / {run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
     for i, row in enumerate(success):
         lo, hi = wilson_interval(int(row.sum()), row.size)
         print(f"seed {i}: success {row.mean():.3f} (95 % interval {lo:.3f}-{hi:.3f})")

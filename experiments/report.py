@@ -1,38 +1,26 @@
-"""Learning curves of training runs: evaluation success against env steps, mean ± std over seeds.
+"""Reports of training runs, shared by the commands: reading runs, curves, tables and plots.
 
-    python -m experiments.plot runs/a runs/b [--out curves] [--x env_steps|epoch|wall_time]
-        [--label-by agent|run|env|GROUP.FIELD] [--label runs/b=transfer] [--panel-by env|GROUP.FIELD]
-        [--last-n 10] [--threshold 0.5]
+- `load_run(run_dir)`: a run directory's `config.json` and `metrics.csv` as arrays.
+- `curves(runs, label_by, labels, panel_by)`: one `Curve` per run (per-seed eval success
+  against epochs, env steps and wall time), labelled and grouped into panels.
+- `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
+  (the paper's "success rate over the last N epochs", Table II).
+- `plot(curves, prefix)`: PREFIX.png (one panel per env or `panel_by` value, the seed mean
+  with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
+  seed) and PREFIX.csv (the plotted numbers).
+- `markdown_table`, `summary_table`: Markdown tables.
 
-The paper's learning curves (Fig. 4), noise runs (Fig. 5, Table II) and transfer arms (Fig. 6)
-are all this plot: one panel per env (or per `--panel-by` value, e.g. the noise level κ), one
-line per label, the seed mean of `eval_success`
-with a shaded band of ± one standard deviation over seeds (numpy's population std: 0 for one
-seed). It reads each run directory's `config.json` and `metrics.csv` (experiments/run.py),
-writes PREFIX.png and PREFIX.csv (the plotted numbers: panel, label, x, mean, std, n_seeds)
-and prints `summary_table` (final success over the last N epochs) as Markdown.
-
-Labels are agent names unless runs of one panel share an agent; those are labelled by their
-directory's basename. `--label RUN_DIR=NAME` names a run outright (the transfer arms
-"scratch" and "transfer"); `--label-by train.intrinsic_lambda` labels by a config value.
-
-Python API, for the experiment scripts: `load_run(run_dir) -> dict`, `curves(runs, ...)`,
-`plot(curves, prefix, ...)`, `summary_table(runs, last_n, ...)`, `final_success(curve, last_n)`,
-`time_to_threshold(curve, threshold)` and `normalized_auc(curve)`.
-
-Exit codes: 0 done; 2 a run directory without config.json or metrics.csv, or a bad option
-(one `error: ...` line on stderr).
+Used by `python -m experiments.plot`, the paper experiments and the benchmarks. It imports
+neither JAX nor the environments (matplotlib only when it draws), so that it stays light.
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import json
 import os
 import re
-import sys
 from collections import Counter
 from typing import Callable, Mapping, Sequence
 
@@ -259,54 +247,3 @@ def summary_table(
             cells.append("never" if hit is None else f"{hit.epoch}, {hit.env_steps:,.0f}, {hit.wall_time:.0f} s")
         rows.append(cells)
     return markdown_table(head, rows)
-
-
-def _label_option(text: str) -> tuple[str, str]:
-    run_dir, sep, name = text.rpartition("=")
-    if not sep or not run_dir or not name:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected RUN_DIR=NAME")
-    return run_dir, name
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="python -m experiments.plot",
-        description="Plot eval success of runs (mean ± std over seeds), one panel per env; write PREFIX.png/.csv.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    parser.add_argument("run_dirs", nargs="+", metavar="RUN_DIR", help="run directories (config.json + metrics.csv)")
-    parser.add_argument("--out", default="learning_curves", help="output prefix: writes PREFIX.png and PREFIX.csv")
-    parser.add_argument("--x", default="env_steps", choices=list(X_AXES), help="x axis")
-    parser.add_argument(
-        "--label-by", default="agent", help="label lines by agent, run (directory basename), env or a config GROUP.FIELD"
-    )
-    parser.add_argument("--panel-by", default="env", help="one panel per value of this (keys as --label-by)")
-    parser.add_argument(
-        "--label", action="append", type=_label_option, default=[], metavar="RUN_DIR=NAME",
-        help="name a run's line (repeatable); overrides --label-by",
-    )
-    parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the printed final success")
-    parser.add_argument("--threshold", type=float, help="also print when each mean curve first reaches this")
-    parser.add_argument("--title", default="", help="figure title")
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        if args.last_n < 1:
-            raise ValueError(f"--last-n {args.last_n}: must be a positive integer")
-        runs = [load_run(d) for d in args.run_dirs]
-        labels = dict(args.label)
-        cs = curves(runs, args.label_by, labels, args.panel_by)
-        png, table = plot(cs, args.out, args.x, args.title)
-        summary = summary_table(runs, args.last_n, args.label_by, labels, args.threshold, args.panel_by)
-    except (ValueError, OSError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    print(f"wrote {png} and {table}\n\n{summary}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

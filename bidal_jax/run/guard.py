@@ -27,9 +27,10 @@ class Diverged(Exception):
 class Interrupted(Exception):
     """SIGINT or SIGTERM arrived; a checkpoint was saved after the epoch in flight."""
 
-    def __init__(self, signum: int, epoch: int, directory: str):
-        super().__init__(f"interrupted: saved checkpoint at epoch {epoch} in {directory}")
+    def __init__(self, signum: int, epoch: int, run_dir: str):
+        super().__init__(f"interrupted: saved checkpoint at epoch {epoch} in {os.path.join(run_dir, 'checkpoints')}")
         self.exit_code = EXIT_ON_SIGNAL[signum]
+        self.run_dir = run_dir
 
 
 def guarded(state) -> dict:

@@ -143,7 +143,7 @@ def train(
                     checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
                     saved = e
                 if signum:
-                    raise Interrupted(signum, e, ckpt_dir)
+                    raise Interrupted(signum, e, run.run_dir)
                 if done:
                     break
         finally:

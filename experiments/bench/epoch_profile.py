@@ -1,9 +1,9 @@
 """Where a training epoch's time goes: a JAX profiler trace of one warm epoch, summarised.
 
-    python -m experiments.bench_profile --env nicol_slide --agent multimodal_bidal --seeds 1
-    python -m experiments.bench_profile --env planar_reach --seeds 3 --out runs/profile/planar
+    python -m experiments.bench.epoch_profile --env nicol_slide --agent multimodal_bidal --seeds 1
+    python -m experiments.bench.epoch_profile --env planar_reach --seeds 3 --out runs/profile/planar
 
-Builds the preset's training program as `experiments.bench --devices 1` does, runs two epochs
+Builds the preset's training program as `experiments.bench.throughput --devices 1` does, runs two epochs
 (compilation, warm-up), then traces a third with `jax.profiler.trace` (the trace, with a Perfetto
 JSON copy, stays in `--out` for TensorBoard or ui.perfetto.dev) and prints, per device stream and
 host thread, the seconds its events add up to, how many there are, and its largest operations.
@@ -25,9 +25,9 @@ import time
 import jax
 
 import envs_mjx
+from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
-from bidal_jax.config import AGENTS
-from experiments.bench import seeded_program
+from experiments.bench.programs import seeded_program
 
 
 def summarise(events: list[dict], top: int = 10) -> list[dict]:
@@ -67,7 +67,7 @@ def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10) ->
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m experiments.bench_profile", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench.epoch_profile", description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="planar_reach", choices=envs_mjx.names())
     parser.add_argument("--agent", default="proprio_baseline", choices=list(AGENTS))
     parser.add_argument("--seeds", type=int, default=1)
@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     try:
         validate.check_field("seeds", args.seeds)
-    except validate.ConfigError as err:
+    except ConfigError as err:
         raise SystemExit(f"error: {err}") from err
     out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
     wall, rows = profile_epoch(args.env, args.agent, args.seeds, out, args.top)

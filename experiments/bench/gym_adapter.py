@@ -1,7 +1,7 @@
 """Cost of the Gymnasium adapter (envs_mjx.gym) per env step, against native MuJoCo.
 
-    python -m experiments.bench_gym                            # planar_reach, 1/16/64/256 envs
-    python -m experiments.bench_gym --num-envs 64 --repeats 9
+    python -m experiments.bench.gym_adapter                            # planar_reach, 1/16/64/256 envs
+    python -m experiments.bench.gym_adapter --num-envs 64 --repeats 9
 
 One env step is one 0.04 s control period. The adapter figure is the wall time of
 `VectorGoalEnv.step` (numpy actions in; numpy observations, rewards and infos out;
@@ -70,7 +70,7 @@ def interleaved_medians(runs: dict[str, Callable[[], None]], repeats: int) -> di
 
 def main(argv: list[str] | None = None) -> None:
     """Print the adapter's and native MuJoCo's cost per env step as a Markdown table."""
-    parser = argparse.ArgumentParser(prog="python -m experiments.bench_gym", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench.gym_adapter", description=__doc__.split("\n\n")[0])
     parser.add_argument("--env", default="planar_reach", choices=envs_mjx.names())
     parser.add_argument("--num-envs", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--steps", type=int, default=100, help="env steps per timed run")

@@ -1,7 +1,7 @@
 """Time to a success threshold on CPU, compilation included, optionally beside another commit.
 
-    taskset -c 0,1 python -m experiments.bench_success --ref 4fd28b3
-    python -m experiments.bench_success --cases planar --target 0.5 --repeats 3 --out success.json
+    taskset -c 0,1 python -m experiments.bench.success --ref 4fd28b3
+    python -m experiments.bench.success --cases planar --target 0.5 --repeats 3 --out success.json
 
 Cases, each `python -m experiments.run ... --target-success T` (which stops the run at the first
 epoch whose mean eval success over seeds is ≥ T):
@@ -64,14 +64,14 @@ import time
 
 import numpy as np
 
-from experiments.plot import curves, load_run, markdown_table, time_to_threshold
+from experiments.report import curves, load_run, markdown_table, time_to_threshold
 
-PROG = "python -m experiments.bench_success"
+PROG = "python -m experiments.bench.success"
 CASES = {
     "planar": ("--env", "planar_reach", "--agent", "proprio_baseline", "--seeds", "3"),
     "main": ("--env", "ur5_reach"),
 }
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 COMPILED = re.compile(r"^compiled in ([0-9.]+) s$", re.MULTILINE)
 # experiments.run of the checkout in the working directory (see the module docstring)
 LAUNCHER = """\

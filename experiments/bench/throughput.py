@@ -2,9 +2,9 @@
 second of the camera alone, whole training epochs, and native MuJoCo (`mujoco.rollout`,
 2 threads) as the yardstick.
 
-    python -m experiments.bench                       # planar_reach, 64/256/1024 envs
-    python -m experiments.bench --envs ur5_reach nicol_slide --num-envs 64 256
-    python -m experiments.bench --skip-train --json out.json
+    python -m experiments.bench.throughput                       # planar_reach, 64/256/1024 envs
+    python -m experiments.bench.throughput --envs ur5_reach nicol_slide --num-envs 64 256
+    python -m experiments.bench.throughput --skip-train --json out.json
 
 One env step is one 0.04 s control period (several physics substeps). Each figure is the
 median of `--repeats` timed runs after a warm-up (compilation excluded); it prints a
@@ -18,16 +18,16 @@ import dataclasses
 import json
 import statistics
 import time
-from typing import Any, Callable, NamedTuple
-
 import jax
 import numpy as np
 
 import envs_mjx
 from bidal_jax import acting
+from bidal_jax.config import ConfigError, TrainConfig, resolve
 from bidal_jax.run import validate
-from bidal_jax.config import NetworkConfig, TrainConfig, agent_spec, env_preset
-from bidal_jax.train import device_layout, make_seeded, make_train
+from bidal_jax.run.devices import make_seeded
+from bidal_jax.train import make_train
+from experiments.bench.programs import seeded_program
 
 
 def _timed(fn, repeats: int) -> float:
@@ -66,16 +66,15 @@ def camera_frames_per_second(name: str, num_envs: int, repeats: int) -> float:
 
 def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int) -> float:
     """Env steps per second of whole training epochs (rollouts, updates, evaluation)."""
-    spec = agent_spec(agent)
-    preset = env_preset(name, agent)
+    preset = resolve({"env": name, "agent": agent})
     config = dataclasses.replace(
-        TrainConfig(**preset.get("train", {})),
+        preset.train,
         num_envs=num_envs,
         buffer_episodes=max(num_envs * 4, TrainConfig().buffer_episodes // num_envs * num_envs),
         cycles_per_epoch=2,
     )
-    env = envs_mjx.make(name, render=spec.uses_image)
-    init, epoch = make_seeded(*make_train(env, spec, NetworkConfig(**preset.get("network", {})), config))
+    env = envs_mjx.make(name, render=preset.agent.uses_image)
+    init, epoch = make_seeded(*make_train(env, dataclasses.replace(preset, train=config)))
     holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), 1))}
 
     def one_epoch():
@@ -86,34 +85,11 @@ def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int
     return config.cycles_per_epoch * num_envs * env.episode_length / seconds
 
 
-class SeededProgram(NamedTuple):
-    """`make_seeded`'s init and epoch, with what they were built from and laid out on."""
-    init: Callable
-    epoch: Callable
-    config: TrainConfig
-    env: Any
-    devices: list
-    shards: int
-
-
-def seeded_program(name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1) -> SeededProgram:
-    """The training program of `seeds` vmapped seeds of the env's preset for `agent` on the first
-    `n_devices` devices, laid out as a run lays them out (`train.device_layout`)."""
-    spec = agent_spec(agent)
-    preset = env_preset(name, agent)
-    config = TrainConfig(**preset.get("train", {}))
-    env = envs_mjx.make(name, render=spec.uses_image)
-    devices, shards = device_layout(seeds, config, env_shards, jax.devices()[:n_devices])
-    net = NetworkConfig(**preset.get("network", {}))
-    init, epoch = make_seeded(*make_train(env, spec, net, config, shards), devices, shards)
-    return SeededProgram(init, epoch, config, env, devices, shards)
-
-
 def sharded_training(
     name: str, agent: str, seeds: int, n_devices: int, repeats: int, env_shards: int = 1
 ) -> dict[str, float]:
     """Training throughput of `seeds` vmapped seeds of the env's preset on the first `n_devices`
-    devices, laid out as a run lays them out (`train.device_layout`: seeds over devices, up to
+    devices, laid out as a run lays them out (`devices.device_layout`: seeds over devices, up to
     `env_shards` of the devices left over splitting each seed's envs): env steps per second with
     learning, and seconds per epoch."""
     init, epoch, config, env, devices, shards = seeded_program(name, agent, seeds, n_devices, env_shards)
@@ -157,7 +133,7 @@ def native_steps_per_second(name: str, num_envs: int, steps: int, repeats: int, 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m experiments.bench", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench.throughput", description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", nargs="+", default=["planar_reach"], choices=envs_mjx.names())
     parser.add_argument("--num-envs", nargs="+", type=int, default=[64, 256, 1024])
     parser.add_argument("--steps", type=int, default=50, help="control periods per timed rollout")
@@ -210,7 +186,7 @@ def scaling(args: argparse.Namespace) -> None:
                          f"device(s)")
     try:
         validate.check_field("env_shards", args.env_shards)
-    except validate.ConfigError as err:
+    except ConfigError as err:
         raise SystemExit(f"error: {err}") from err
     rows = []
     for n in args.devices:

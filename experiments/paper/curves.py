@@ -1,7 +1,7 @@
 """The learning curves (paper Fig. 4): every agent on every task, the same budget for
 every agent of a task.
 
-    python -m experiments.curves [--tasks a,b] [--agents x,y] [--seeds 5] [--seed 0] [--epochs N]
+    python -m experiments.paper.curves [--tasks a,b] [--agents x,y] [--seeds 5] [--seed 0] [--epochs N]
         [--out results/curves] [--held-starts] [--dry-run | --report] [--last-n 10]
         [any learner or network option of experiments.run]
 
@@ -24,7 +24,7 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
 run dir, new/resume/done) and its estimated time on one H200 running the runs one after another
 (`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
-(`experiments/grid.py`), resumable as experiments.transfer: run the same command again; a run
+(`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
 whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
 is skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint
 starts again. The persistent compilation cache is not used,
@@ -32,7 +32,7 @@ so that every run's `wall_time` includes its compilation.
 
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
 per task, one line per agent: eval success against env steps per seed, mean ± std over seeds;
-`experiments/plot.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
+`experiments/report.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
 `--last-n` epochs, per agent and task, each run's wall time, their total, and the runs missing or
 unfinished). `--report` trains nothing and writes only these, e.g. from run folders whose
 checkpoints were not kept (results/ holds no checkpoints: .gitignore).
@@ -49,13 +49,13 @@ import os
 import sys
 from typing import Any, Sequence
 
+from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import multihost
-from bidal_jax.config import AGENTS, agent_spec
-from bidal_jax.run.validate import ConfigError
-from experiments import grid, plot, run as run_cli
-from experiments.grid import Arm
+from experiments import cli, report
+from experiments.paper import grid
+from experiments.paper.grid import Arm
 
-PROG = "python -m experiments.curves"
+PROG = "python -m experiments.paper.curves"
 # the budget: epochs per task, the same for every agent of the task (module docstring)
 EPOCHS = {"planar_reach": 40, "ur5_reach": 30, "nicol_slide": 100, "nicol_lift": 100}
 TASKS = tuple(EPOCHS)
@@ -117,7 +117,7 @@ def estimate(arm: Arm) -> float:
     step = grid.latest(arm)
     if grid.status_at(step, arm.epochs) == "done":
         return 0.0
-    kind = "image" if agent_spec(arm.given["agent"]).uses_image else "proprio"
+    kind = "image" if arm.config.agent.uses_image else "proprio"
     per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
     return compile_s + per_epoch * (arm.epochs - (step or 0))
 
@@ -140,19 +140,19 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def cell(run: dict, curve: plot.Curve, epochs: int, last_n: int) -> str:
+def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
     """Final success (mean ± std over seeds of each seed's last `last_n` epochs), the run's wall
     time, and how far it got when it is unfinished."""
     done = int(run["epoch"][-1])
     progress = "" if done >= epochs else f", epoch {done} of {epochs}"
-    return f"{plot.final_cell(curve, last_n)}, {run['wall_time'][-1]:,.0f} s{progress}"
+    return f"{report.final_cell(curve, last_n)}, {run['wall_time'][-1]:,.0f} s{progress}"
 
 
 def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
     """Markdown: one row per agent, one column per task; a run without epochs is "—"."""
     tasks = {arm.given["env"]: arm.epochs for arm in arms}
     agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
-    by_dir = {c.run_dir: c for c in plot.curves(list(runs.values()))}
+    by_dir = {c.run_dir: c for c in report.curves(list(runs.values()))}
     head = ["agent", *(f"{task} ({epochs} epochs)" for task, epochs in tasks.items())]
     rows = []
     for agent in agents:
@@ -161,7 +161,7 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> st
             run = runs.get(arm.name)
             cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n))
         rows.append(cells)
-    return plot.markdown_table(head, rows)
+    return report.markdown_table(head, rows)
 
 
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
@@ -180,7 +180,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str 
     runs = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
-    plot.plot(plot.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
+    report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
     total = sum(float(r["wall_time"][-1]) for r in runs.values())
     return "\n".join([
         f"# {title}",
@@ -202,11 +202,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = grid.out_dir(args, "curves")
     try:
         multihost.initialize()
-        tasks = grid.parse_names(args.tasks, "--tasks", "task", TASKS)
-        agents = grid.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
+        tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
+        agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
         arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
     except ConfigError as err:
-        return grid.error(err, run_cli.EXIT_BAD_INPUT)
+        return cli.exit_code(err)
     code = 0
     if not args.report:
         envs = grid.make_envs(arms)

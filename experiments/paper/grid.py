@@ -1,13 +1,13 @@
-"""Runs of an experiment script, trained one after another and resumable (experiments.transfer,
-experiments.curves).
+"""Runs of a paper experiment, trained one after another and resumable (`curves`,
+`noise_robustness`, `transfer_learning`).
 
 An experiment is a list of `Arm`s: a name and the config fields of one run (`run_dir` and
 `epochs` resolved). `status` says what running it again does: "done" (its latest checkpoint is
 at its epochs: skipped), "resume" (an earlier checkpoint: continued from it) or "new" (no
 checkpoint: its directory is deleted and it starts again). `train_arms` trains them in-process
-through `bidal_jax.loop` (prepare, then train) and returns the exit code of experiments.run:
-0 done; 2 bad config or checkpoint (one `error: ...` line); 3 diverged; 130 and 143 stopped by
-SIGINT and SIGTERM (a checkpoint was saved).
+(`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`): 0 done; 2 bad
+config or checkpoint (one `error: ...` line); 3 diverged; 130 and 143 stopped by SIGINT and
+SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations
@@ -15,16 +15,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import sys
 from typing import Any, Callable, Sequence
 
 import envs_mjx
-from bidal_jax import config as config_lib
-from bidal_jax.run import checkpoint, loop, transfer, validate
-from bidal_jax.run.checkpoint import CheckpointError
-from bidal_jax.config import NetworkConfig, TrainConfig
-from bidal_jax.run.validate import ConfigError, option
-from experiments import plot, run as run_cli
+from bidal_jax.config import Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
+from bidal_jax.run import checkpoint, validate
+from experiments import cli, report
 
 # what passes through to every run: the learner and network options (the exploration starts are
 # each experiment's --held-starts) and the checkpoint interval
@@ -51,17 +47,16 @@ class Arm:
     def epochs(self) -> int:
         return self.given["epochs"]
 
-
-def error(message: object, code: int) -> int:
-    """Print the one-line `error: ...` and return the exit code."""
-    print(f"error: {message}", file=sys.stderr)
-    return code
+    @property
+    def config(self) -> Config:
+        """The run's config: defaults, presets, then its fields."""
+        return resolve(self.given)
 
 
 def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
     """The config fields of the options an experiment `prog` does not know itself, parsed as
     experiments.run parses them; ConfigError for one that is not passed through."""
-    parser = run_cli.build_parser()
+    parser = cli.run_parser()
     parser.prog = prog
     # unset options are None; flags (--quiet, --resume, ...) are False unless given
     given = {k: v for k, v in vars(parser.parse_args(list(argv))).items() if v is not None and v is not False}
@@ -69,18 +64,6 @@ def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
         hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
         raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
     return given
-
-
-def parse_names(text: str, flag: str, kind: str, allowed: Sequence[str]) -> tuple[str, ...]:
-    """The names of a comma list option (`--tasks a,b`), in the order given; ConfigError naming
-    one that is not allowed, or an empty list."""
-    names = [name.strip() for name in text.split(",") if name.strip()]
-    for name in names:
-        if name not in allowed:
-            raise ConfigError(f"{flag} {text}: unknown {kind} {name!r}; allowed: {', '.join(allowed)}")
-    if not names:
-        raise ConfigError(f"{flag} {text!r}: name at least one of {', '.join(allowed)}")
-    return tuple(dict.fromkeys(names))
 
 
 def out_dir(args: argparse.Namespace, name: str) -> str:
@@ -96,7 +79,7 @@ def checked_arms(args: argparse.Namespace, rest: Sequence[str], prog: str,
         raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
     arms = make_arms(pass_through(rest, prog))
     for arm in arms:
-        validate.check(*config_lib.resolve(arm.given), env_names=envs_mjx.names())
+        validate.check(arm.config, env_names=envs_mjx.names())
     return arms
 
 
@@ -125,7 +108,7 @@ def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
     made: dict[tuple[str, bool], Any] = {}
     envs = {}
     for arm in arms:
-        key = (arm.given["env"], config_lib.agent_spec(arm.given["agent"]).uses_image)
+        key = (arm.given["env"], arm.config.agent.uses_image)
         if key not in made:
             made[key] = envs_mjx.make(key[0], render=key[1])
         envs[arm.name] = made[key]
@@ -134,7 +117,7 @@ def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
 
 def plan_line(arm: Arm, env) -> str:
     """What the run is, its epochs and env steps per seed, and what training does with it."""
-    run, train, _ = config_lib.resolve(arm.given)
+    run, train = arm.config.run, arm.config.train
     per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
     source = f", parameters from {run.init_from}" if run.init_from else ""
     step = latest(arm)
@@ -152,18 +135,11 @@ def train_arm(arm: Arm, env, quiet: bool) -> None:
     if state == "done":
         print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
         return
-    resume = state == "resume"
-    configs = loop.prepare(arm.given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
-                           overwrite=not resume)
-    if not resume:  # a run stopped before its first checkpoint starts again
-        loop.delete_run_dir(arm.run_dir)
-    run = configs[0]
-    initialize = arm.initialize
-    if initialize is None and run.init_from:
-        initialize = transfer.make_initializer(run, env.observation_spec.proprio_segments, envs_mjx.make)
-    row = loop.train(env, *configs, quiet=quiet, resume=resume, initialize=initialize)
+    resume = state == "resume"  # else a run stopped before its first checkpoint starts again
+    config, row = cli.start_run(arm.given, resume=resume, overwrite=not resume, quiet=quiet, env=env,
+                                initialize=arm.initialize)
     print(f"{arm.name}:", end=" ")
-    run_cli.print_summary(run, row)
+    cli.print_summary(config.run, row)
 
 
 def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
@@ -171,21 +147,16 @@ def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
     try:
         for arm in arms:
             train_arm(arm, envs[arm.name], quiet)
-    except (ConfigError, CheckpointError) as err:
-        return error(err, run_cli.EXIT_BAD_INPUT)
-    except loop.Diverged as err:
-        return error(err, run_cli.EXIT_DIVERGED)
-    except loop.Interrupted as stop:
-        print(f"{stop}; run the same command again to continue", file=sys.stderr)
-        return stop.exit_code
+    except cli.FAILURES as err:
+        return cli.exit_code(err)
     return 0
 
 
 def loaded(run_dir: str) -> dict | None:
-    """The run's metrics and config (`plot.load_run`), or None while it has no epochs."""
+    """The run's metrics and config (`report.load_run`), or None while it has no epochs."""
     try:
-        return plot.load_run(run_dir)
-    except plot.RunError:
+        return report.load_run(run_dir)
+    except report.RunError:
         return None
 
 

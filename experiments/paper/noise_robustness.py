@@ -1,4 +1,4 @@
-"""Noise robustness (paper Sec. IV-B, Table II): `python -m experiments.noise`.
+"""Noise robustness (paper Sec. IV-B, Table II): `python -m experiments.paper.noise_robustness`.
 
 Trains multimodal_bidal, multimodal_baseline and proprio_baseline on nicol_slide with
 observation noise s + κ·N(0, σ) on `ee_pos`, `ee_rot` and `obj_pos` (σ: each feature's
@@ -15,7 +15,7 @@ and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 r
 Resumable: a finished agent is skipped, an interrupted one resumed from its latest
 checkpoint; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
-the nicol_slide preset's. The agents' runs are trained by `experiments/grid.py` (as the
+the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
 transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
 option, config or checkpoint; 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM.
 """
@@ -30,11 +30,11 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs_mjx
-from bidal_jax import config as config_lib
+from bidal_jax.config import ConfigError, resolve
 from bidal_jax.run import loop, multihost
-from bidal_jax.run.validate import ConfigError
-from experiments import grid, plot, run as run_cli
-from experiments.grid import Arm
+from experiments import cli, report
+from experiments.paper import grid
+from experiments.paper.grid import Arm
 
 KAPPAS = (0.05, 0.10, 0.15)
 LAST_N = {0.05: 5, 0.10: 30, 0.15: 30}  # the paper's window per κ (Table II)
@@ -65,16 +65,16 @@ def agent_arm(agent: str, run_dir: str, given: dict, runs: int) -> Arm:
     return Arm(agent, given, initialize=with_kappas)
 
 
-def kappa_curves(run: dict, runs: int) -> list[plot.Curve]:
+def kappa_curves(run: dict, runs: int) -> list[report.Curve]:
     """The run's curve split by κ: one curve per κ over its `runs` seeds."""
     return [
-        plot.Curve(f"κ = {k:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"], run["wall_time"],
+        report.Curve(f"κ = {k:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"], run["wall_time"],
                    run["success"][:, i * runs:(i + 1) * runs])
         for i, k in enumerate(KAPPAS)
     ]
 
 
-def table(curves: dict[tuple[float, str], plot.Curve]) -> str:
+def table(curves: dict[tuple[float, str], report.Curve]) -> str:
     """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper."""
     agents = [a for a in AGENTS if any(agent == a for _, agent in curves)]
     head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper"))]
@@ -86,25 +86,25 @@ def table(curves: dict[tuple[float, str], plot.Curve]) -> str:
             if curve is None:
                 cells.append("— ")
             else:
-                mean, std, used = plot.final_success(curve, LAST_N[k])
+                mean, std, used = report.final_success(curve, LAST_N[k])
                 partial = f" (last {used} of {len(curve.epoch)} epochs)" if used < LAST_N[k] else f" ({len(curve.epoch)} epochs)"
                 cells.append(f"{mean:.3f} ± {std:.4f}{partial}")
             cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
         rows.append(cells)
-    return plot.markdown_table(head, rows) + "\n"
+    return report.markdown_table(head, rows) + "\n"
 
 
-def report(out: str, runs: int) -> str:
+def write_report(out: str, runs: int) -> str:
     """Write table.md, curves.png and curves.csv from the agents' run directories; return the table."""
     found = {}
     for agent in AGENTS:
         run_dir = os.path.join(out, agent)
         if os.path.isfile(os.path.join(run_dir, "metrics.csv")):
-            for k, curve in zip(KAPPAS, kappa_curves(plot.load_run(run_dir), runs)):
+            for k, curve in zip(KAPPAS, kappa_curves(report.load_run(run_dir), runs)):
                 found[k, agent] = curve
     if not found:
         return ""
-    plot.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
+    report.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
     text = table(found)
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)
@@ -112,7 +112,7 @@ def report(out: str, runs: int) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m experiments.noise", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m experiments.paper.noise_robustness", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=os.path.join("results", "noise"), help="results folder")
     parser.add_argument("--env", default="nicol_slide", choices=envs_mjx.names())
     parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
@@ -130,13 +130,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
              **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
-    given["epochs"] = args.epochs or config_lib.resolve(given)[0].epochs
-    if args.runs < 1:
-        return grid.error(f"--runs {args.runs}: must be a positive integer", run_cli.EXIT_BAD_INPUT)
+    given["epochs"] = args.epochs or resolve(given).run.epochs
     try:
+        if args.runs < 1:
+            raise ConfigError(f"--runs {args.runs}: must be a positive integer")
         multihost.initialize()
     except ConfigError as err:
-        return grid.error(err, run_cli.EXIT_BAD_INPUT)
+        return cli.exit_code(err)
     os.makedirs(args.out, exist_ok=True)
     print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
           f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
@@ -146,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     if code:
         return code
     if multihost.is_main():  # one process writes the results
-        print(report(args.out, args.runs))
+        print(write_report(args.out, args.runs))
     return 0
 
 

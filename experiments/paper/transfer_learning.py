@@ -1,7 +1,7 @@
 """The transfer experiment (paper Sec. IV-C, Fig. 6): reduced lift learns from scratch and
 from the representation of a sliding run.
 
-    python -m experiments.transfer [--seeds 5] [--out results/transfer] [--source RUN_DIR]
+    python -m experiments.paper.transfer_learning [--seeds 5] [--out results/transfer] [--source RUN_DIR]
         [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch] [any learner or network option of experiments.run]
 
 Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
@@ -9,7 +9,7 @@ Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in 
 - `source/`: nicol_slide with its preset (`--source-epochs` epochs), unless `--source RUN_DIR`
   names a finished one (`--source-checkpoint` picks a step or "best"; default the latest);
 - `transfer/`: nicol_lift_reduced whose encoder and forward and inverse models (`--init-parts`)
-  start from the source's (`bidal_jax/transfer.py`: seed i from the source's seed i, the proprio
+  start from the source's (`bidal_jax/run/transfer.py`: seed i from the source's seed i, the proprio
   rows and the proprio normaliser matched by segment name, optimisers fresh);
 - `scratch/`: the same run from a fresh start: same seeds, epochs and settings.
 
@@ -19,7 +19,7 @@ Faithful to the paper by default: no held starts (`exploration_starts` 0 in both
 options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to all three runs.
 
 Then, from whatever runs have epochs, it writes `success.png` and `success.csv` (eval success
-against env steps per seed, mean ± std over seeds, both arms; `experiments/plot.py`) and
+against env steps per seed, mean ± std over seeds, both arms; `experiments/report.py`) and
 `table.md` (env steps and wall time to 0.3 and 0.5 success, area under the curve, final
 success). Each run's metrics are its `metrics.csv`. The persistent compilation cache is not
 used: both arms' programs are identical, and the second would otherwise skip its compilation,
@@ -27,7 +27,7 @@ which `wall_time` counts. The source's training time is not in the transfer arm'
 
 Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
 skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
-again (`experiments/grid.py`). Runs are driven in-process through `bidal_jax.loop` (prepare,
+again (`experiments/paper/grid.py`). Runs are driven in-process (`experiments/cli.py`: prepare,
 then train), in the order source, transfer, scratch, so that the transfer's checks run as early
 as they can. `--arms` trains
 only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
@@ -46,14 +46,13 @@ import os
 import sys
 from typing import Any, Sequence
 
-from bidal_jax import config as config_lib
+from bidal_jax.config import ConfigError, RunConfig, resolve
 from bidal_jax.run import multihost
-from bidal_jax.config import RunConfig
-from bidal_jax.run.validate import ConfigError
-from experiments import grid, plot, run as run_cli
-from experiments.grid import Arm
+from experiments import cli, report
+from experiments.paper import grid
+from experiments.paper.grid import Arm
 
-PROG = "python -m experiments.transfer"
+PROG = "python -m experiments.paper.transfer_learning"
 SOURCE_ENV, TARGET_ENV, AGENT = "nicol_slide", "nicol_lift_reduced", "multimodal_bidal"
 HELD_STARTS = 0.5
 THRESHOLDS = (0.3, 0.5)
@@ -89,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_arms(text: str) -> frozenset[str]:
     """The arms named by --arms ('none': no arm); ConfigError naming one that is not an arm."""
-    return frozenset() if text == "none" else frozenset(grid.parse_names(text, "--arms", "arm", ARMS))
+    return frozenset() if text == "none" else frozenset(cli.parse_names(text, "--arms", "arm", ARMS))
 
 
 def source_dir(args: argparse.Namespace, out: str) -> str:
@@ -109,17 +108,17 @@ def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list
     arms = []
     for name, given, epochs in runs:
         given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
-        arms.append(Arm(name, {**given, "epochs": config_lib.resolve(given)[0].epochs}))
+        arms.append(Arm(name, {**given, "epochs": resolve(given).run.epochs}))
     return arms
 
 
-def _cell(hit: plot.Reached | None) -> tuple[str, str]:
+def _cell(hit: report.Reached | None) -> tuple[str, str]:
     if hit is None:
         return "not reached", "not reached"
     return f"{hit.env_steps:,.0f} (epoch {hit.epoch})", f"{hit.wall_time:,.0f} s"
 
 
-def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
+def results_table(curves: Sequence[report.Curve], last_n: int) -> str:
     """Markdown, one row per arm: env steps and wall time to each threshold (first epoch whose seed
     mean reaches it), normalised AUC, final success (mean ± std over seeds of the last `last_n` epochs)."""
     head = ["arm", "seeds", "epochs", "env steps per seed"]
@@ -130,9 +129,9 @@ def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
     for c in curves:
         cells = [c.label, str(c.n_seeds), str(len(c.epoch)), f"{c.env_steps[-1]:,.0f}"]
         for t in THRESHOLDS:
-            cells += _cell(plot.time_to_threshold(c, t))
-        rows.append(cells + [f"{plot.normalized_auc(c):.3f}", plot.final_cell(c, last_n)])
-    return plot.markdown_table(head, rows)
+            cells += _cell(report.time_to_threshold(c, t))
+        rows.append(cells + [f"{report.normalized_auc(c):.3f}", report.final_cell(c, last_n)])
+    return report.markdown_table(head, rows)
 
 
 def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
@@ -140,8 +139,8 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
     runs = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
-    curves = plot.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
-    plot.plot(curves, os.path.join(out, "success"), title=title)
+    curves = report.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
+    report.plot(curves, os.path.join(out, "success"), title=title)
     notes = [
         f"# {TARGET_ENV}: {title}",
         "",
@@ -170,7 +169,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         train_names = parse_arms(args.arms)
         arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(args, extra, out))
     except ConfigError as err:
-        return grid.error(err, run_cli.EXIT_BAD_INPUT)
+        return cli.exit_code(err)
     envs = grid.make_envs(arms)
     print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
     code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)

@@ -9,7 +9,7 @@ desired goal), so it vmaps over environments; the phase of the manoeuvre is read
 the observation itself. (A thumb-pushing controller reached only 40–47 % on
 nicol_slide: a fast push launches the cube; see assets/README.md.)
 
-    python -m experiments.scripted      # success rates over 100 random episodes each
+    python -m experiments.probes.scripted      # success rates over 100 random episodes each
 """
 
 from __future__ import annotations

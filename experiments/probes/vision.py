@@ -11,7 +11,7 @@ mean), and the share of frames whose predicted achieved goal lies within ε of t
 ("located"). A branch that cannot locate the achieved goal with supervision cannot give
 the actor and critic what success needs; one that can points at the learning signal instead.
 
-    python -m experiments.vision_probe --envs planar_reach,ur5_reach --conv-strides 3,2,2,2 2,2,1,1
+    python -m experiments.probes.vision --envs planar_reach,ur5_reach --conv-strides 3,2,2,2 2,2,1,1
 
 Frames: `--frames` start states of `env.reset` (each task draws its start, e.g. the arm's joint
 angles or the cube's place, uniformly over the task's range: many distinct states, where the
@@ -33,13 +33,12 @@ import numpy as np
 import optax
 
 import envs_mjx
-from bidal_jax.run import validate
-from bidal_jax.config import NetworkConfig, parse_strides
+from bidal_jax.config import ConfigError, NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
-from bidal_jax.run.validate import ConfigError
-from experiments import grid
+from bidal_jax.run import validate
+from experiments import cli
 
-PROG = "python -m experiments.vision_probe"
+PROG = "python -m experiments.probes.vision"
 HELD_OUT = 0.2  # share of the frames the probe is tested on
 
 
@@ -126,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]:
     """The envs and stride settings asked for; ConfigError naming a bad one."""
-    envs = list(grid.parse_names(args.envs, "--envs", "env", envs_mjx.names()))
+    envs = list(cli.parse_names(args.envs, "--envs", "env", envs_mjx.names()))
     for text in args.conv_strides:
         validate.check_field("conv_strides", text)
     strides = [parse_strides(text) for text in args.conv_strides]
@@ -147,8 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         envs, strides = checked(args)
     except ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return cli.exit_code(err)
     lines = ["| env | conv strides | ε | held-out RMSE per goal dimension (constant prediction) | located (within ε) | constant prediction | "
              "frames train / held out |", "| --- | --- | --- | --- | --- | --- | --- |"]
     print("\n".join(lines), flush=True)
