@@ -181,7 +181,12 @@ def rollout(
 
 
 def evaluate(
-    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None, observe: Observer | None = None
+    env,
+    policy: Policy,
+    key: jax.Array,
+    n_episodes: int | None = None,
+    states: Any = None,
+    observe: Observer | None = None,
 ) -> jax.Array:
     """Success (paper Eq. 6 at the episode's last step, on the true state) of `policy` in each of
     `n_episodes` episodes from `env.reset`, or from the given batched `states`; float32 [n_episodes]."""

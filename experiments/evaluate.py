@@ -108,7 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-dir", required=True, help="the run's directory (with checkpoints/ and config.json)")
     parser.add_argument("--checkpoint", default=None, help="a checkpoint step, or 'best' (default: the latest)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per seed")
-    parser.add_argument("--seed", type=int, default=None, help="draw episodes from this seed (default: the checkpoint's evaluation key)")
+    parser.add_argument(
+        "--seed", type=int, default=None, help="draw episodes from this seed (default: the checkpoint's evaluation key)"
+    )
     parser.add_argument("--video", default="", help="also write a video of seed 0's episodes to this .mp4")
     parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video")
     parser.add_argument("--video-size", default="320x240", help="MuJoCo render size WIDTHxHEIGHT (at least 320x240)")
@@ -131,7 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         if args.episodes < 1 or args.video_episodes < 1:
-            raise ValueError(f"--episodes {args.episodes} / --video-episodes {args.video_episodes}: must be positive integers")
+            raise ValueError(
+                f"--episodes {args.episodes} / --video-episodes {args.video_episodes}: must be positive integers"
+            )
         if args.video and not args.video.endswith(".mp4"):
             raise ValueError(f"--video {args.video}: must name an .mp4 file")
         size = _video_size(args.video_size)
@@ -155,8 +159,17 @@ def main(argv: list[str] | None = None) -> int:
     print(f"mean success {mean:.3f} (95 % interval {low:.3f}-{high:.3f}) over {trained.seeds} seed(s)")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"checkpoint": trained.step, "episodes": args.episodes, "per_seed": success.mean(axis=1).tolist(),
-                       "mean": mean, "interval": [low, high]}, f, indent=2)
+            json.dump(
+                {
+                    "checkpoint": trained.step,
+                    "episodes": args.episodes,
+                    "per_seed": success.mean(axis=1).tolist(),
+                    "mean": mean,
+                    "interval": [low, high],
+                },
+                f,
+                indent=2,
+            )
     if args.video:
         key = jax.random.PRNGKey(0 if args.seed is None else args.seed)
         frames = render_video(env, trained, key, args.video_episodes, args.video, size, args.quiet)

@@ -47,11 +47,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--out", default="learning_curves", help="output prefix: writes PREFIX.png and PREFIX.csv")
     parser.add_argument("--x", default="env_steps", choices=list(X_AXES), help="x axis")
     parser.add_argument(
-        "--label-by", default="agent", help="label lines by agent, run (directory basename), env or a config GROUP.FIELD"
+        "--label-by",
+        default="agent",
+        help="label lines by agent, run (directory basename), env or a config GROUP.FIELD",
     )
     parser.add_argument("--panel-by", default="env", help="one panel per value of this (keys as --label-by)")
     parser.add_argument(
-        "--label", action="append", type=_label_option, default=[], metavar="RUN_DIR=NAME",
+        "--label",
+        action="append",
+        type=_label_option,
+        default=[],
+        metavar="RUN_DIR=NAME",
         help="name a run's line (repeatable); overrides --label-by",
     )
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the printed final success")

@@ -236,7 +236,8 @@ def summary_table(
 ) -> str:
     """Markdown: per curve (`curves`), final success mean ± std over seeds (`final_success`), the
     normalised AUC, and with `threshold` the epoch, env steps per seed and time it was reached."""
-    head = [panel_by if isinstance(panel_by, str) else "panel", "label", "seeds", "epochs", f"success, last {last_n} epochs (mean ± std over seeds)", "AUC"]
+    panel = panel_by if isinstance(panel_by, str) else "panel"
+    head = [panel, "label", "seeds", "epochs", f"success, last {last_n} epochs (mean ± std over seeds)", "AUC"]
     if threshold is not None:
         head.append(f"first mean ≥ {threshold:g}: epoch, env steps per seed, time")
     rows = []

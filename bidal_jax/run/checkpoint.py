@@ -91,7 +91,9 @@ def _split(state: Any) -> tuple[dict, Any]:
     return fields, state.buffer
 
 
-def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1) -> None:
+def save(
+    mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1
+) -> None:
     """Save `state` (buffer apart), `config` and the state's digest as `step`, ranked by
     `eval_success` for the best checkpoint; wait until it is on disk. `env_shards`: how many
     shards kept the buffer (its layout, `replay.relayout`), saved beside the digest."""
@@ -180,7 +182,9 @@ def read_config(directory: str, step: int | None = None) -> dict:
     except Exception as err:  # orbax raises many types for damaged files
         raise CheckpointError(f"checkpoint {step} in {directory} has no readable config ({_reason(err)})") from err
     if not isinstance(config, dict):
-        raise CheckpointError(f"checkpoint {step} in {directory} has no readable config (it holds {type(config).__name__})")
+        raise CheckpointError(
+            f"checkpoint {step} in {directory} has no readable config (it holds {type(config).__name__})"
+        )
     return config
 
 
@@ -198,7 +202,8 @@ def _check_structure(saved: Any, target: Any, where: str, partial: bool = False)
     for name, leaf in want.items():
         if tuple(have[name].shape) != tuple(leaf.shape) or np.dtype(have[name].dtype) != np.dtype(leaf.dtype):
             raise CheckpointError(
-                f"{where} holds a state of another shape: {name} is {tuple(have[name].shape)} {np.dtype(have[name].dtype)}, "
+                f"{where} holds a state of another shape: {name} is {tuple(have[name].shape)} "
+                f"{np.dtype(have[name].dtype)}, "
                 f"this config needs {tuple(leaf.shape)} {np.dtype(leaf.dtype)}"
             )
 
@@ -215,18 +220,23 @@ def restore(directory: str, abstract_state: Any, step: int | None = None, env_sh
     fields, buffer = _split(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
     saved = _metadata(path, where)
     _check_structure(saved, {"state": fields, "buffer": buffer}, where)
-    restored = _restore_checked(path, where, {
-        "state": ocp.args.StandardRestore(fields),
-        "buffer": ocp.args.StandardRestore(buffer),
-        "config": ocp.args.JsonRestore(),
-    })
+    restored = _restore_checked(
+        path,
+        where,
+        {
+            "state": ocp.args.StandardRestore(fields),
+            "buffer": ocp.args.StandardRestore(buffer),
+            "config": ocp.args.JsonRestore(),
+        },
+    )
     saved_shards = (restored["digest"] or {}).get("env_shards", 1)  # checkpoints before env shards: 1
     buffer = replay.relayout(restored["buffer"], saved_shards, env_shards, axis=1)  # after the seed axis
     return type(abstract_state)(**restored["state"], buffer=buffer), restored["config"], step
 
 
 def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
-    """{"state": tree, "buffer": tree} (the items `names`) of a checkpoint's array metadata (shapes, dtypes; no data)."""
+    """{"state": tree, "buffer": tree} (the items `names`) of a checkpoint's array metadata (shapes, dtypes;
+    no data)."""
     reader = ocp.Checkpointer(ocp.CompositeCheckpointHandler(**_handlers()))
     try:
         items = reader.metadata(path).item_metadata
@@ -255,7 +265,10 @@ def _restore_checked(path: str, where: str, args: dict, partial: bool = False) -
         raise CheckpointError(f"{where} is damaged: {_reason(err)}") from err
     expected = (restored["digest"] or {}).get("crc32", {})
     arrays = {name: restored[name] for name in ARRAY_ITEMS if name in args}
-    found = {**digest(arrays.get("state", {})), **{f"buffer/{k}": v for k, v in digest(arrays.get("buffer", {})).items()}}
+    found = {
+        **digest(arrays.get("state", {})),
+        **{f"buffer/{k}": v for k, v in digest(arrays.get("buffer", {})).items()},
+    }
     bad = [name for name, crc in found.items() if expected.get(name) != crc]
     if bad:
         raise CheckpointError(f"{where} is corrupted: {', '.join(bad[:3])} does not match its saved checksum")

@@ -16,7 +16,8 @@ from typing import Any, Callable, Sequence
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from bidal_jax import replay
 from bidal_jax.config import ConfigError, TrainConfig
@@ -30,7 +31,9 @@ def seed_devices(seeds: int, devices: Sequence[jax.Device] | None = None) -> lis
     Raises ConfigError when the processes cannot hold equal shares."""
     owned = _by_process(devices)
     if seeds % len(owned):
-        raise ConfigError(f"--seeds {seeds}: must be a multiple of the {len(owned)} processes (each holds as many seeds)")
+        raise ConfigError(
+            f"--seeds {seeds}: must be a multiple of the {len(owned)} processes (each holds as many seeds)"
+        )
     per_process = math.gcd(seeds // len(owned), min(len(own) for own in owned))
     return [d for own in owned for d in own[:per_process]]
 
@@ -55,7 +58,7 @@ def device_layout(
     spare = min(min(len(own) for own in owned) // per_process, max_shards)
     divisor = 1 if config.noise_segments else math.gcd(config.num_envs, config.eval_envs, config.batch_size)
     shards = max(k for k in range(1, spare + 1) if divisor % k == 0)
-    return [d for own in owned for d in own[:per_process * shards]], shards
+    return [d for own in owned for d in own[: per_process * shards]], shards
 
 
 def _mesh(devices: Sequence[jax.Device], shards: int) -> Mesh:
@@ -67,9 +70,18 @@ def _state_specs() -> TrainState:
     the replay buffer's episodes also split over the env shards (each shard keeps its own)."""
     seed = P(SEED_AXIS)
     return TrainState(
-        params=seed, target_params=seed, opt_state=seed, proprio_norm=seed, goal_norm=seed,
+        params=seed,
+        target_params=seed,
+        opt_state=seed,
+        proprio_norm=seed,
+        goal_norm=seed,
         buffer=replay.ReplayState(episodes=P(SEED_AXIS, ENV_AXIS), position=seed, size=seed),
-        key=seed, eval_key=seed, noise=seed, env_steps=seed, updates=seed, epoch=seed,
+        key=seed,
+        eval_key=seed,
+        noise=seed,
+        env_steps=seed,
+        updates=seed,
+        epoch=seed,
     )
 
 

@@ -71,7 +71,8 @@ def divergence(metrics: dict, flags: dict) -> str | None:
 
 
 class StopSignals:
-    """While active, a first SIGINT or SIGTERM only sets `signum`: the loop saves a checkpoint after the epoch in flight.
+    """While active, a first SIGINT or SIGTERM only sets `signum`: the loop saves a checkpoint after the epoch
+    in flight.
 
     A second one exits at once with the signal's exit code (`os._exit`: as safe as SIGKILL,
     which leaves the latest complete checkpoint). Handlers can only be installed in the
@@ -86,7 +87,11 @@ class StopSignals:
     def _handle(self, signum, frame) -> None:
         if self.signum is not None:
             sys.stdout.flush()
-            print(f"\naborted: the latest complete checkpoint in {self.checkpoint_dir} is kept", file=sys.stderr, flush=True)
+            print(
+                f"\naborted: the latest complete checkpoint in {self.checkpoint_dir} is kept",
+                file=sys.stderr,
+                flush=True,
+            )
             os._exit(EXIT_ON_SIGNAL[signum])
         self.signum = signum
         print(

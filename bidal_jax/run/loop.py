@@ -67,7 +67,8 @@ def _restore(run_dir: str, programs: Programs, step: int | None = None):
 
 
 def build(env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None):
-    """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's; writes nothing.
+    """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's;
+    writes nothing.
 
     `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
     from another run for transfer); a resumed run continues its checkpoint as it is.
@@ -76,8 +77,10 @@ def build(env, config: Config, resume: bool, log: Callable = _log, initialize: C
     run, programs = config.run, _programs(env, config)
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
-    log(f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on "
-        f"{len(programs.devices)} device(s){shards}) ...")
+    log(
+        f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on "
+        f"{len(programs.devices)} device(s){shards}) ..."
+    )
     if resume:
         state, step = _restore(run.run_dir, programs)
     else:
@@ -121,8 +124,14 @@ def train(
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
         saved = start_epoch if resume else None
         start = time.time()
-        bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
-                   unit="epoch", initial=start_epoch, total=run.epochs)
+        bar = tqdm(
+            range(start_epoch + 1, run.epochs + 1),
+            desc=f"{run.env}/{run.agent}",
+            disable=quiet or not main,
+            unit="epoch",
+            initial=start_epoch,
+            total=run.epochs,
+        )
         try:
             for e in bar:
                 t = time.time()
@@ -133,7 +142,11 @@ def train(
                 log.write(row)
                 bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
-                    last = f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
+                    last = (
+                        f"the last good checkpoint is epoch {saved} in {ckpt_dir}"
+                        if saved
+                        else "no checkpoint was saved"
+                    )
                     raise Diverged(f"diverged at epoch {e}: {bad}; {last}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success

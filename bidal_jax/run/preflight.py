@@ -99,15 +99,19 @@ def check_run_dir(run_dir: str, overwrite: bool) -> None:
     entries = sorted(os.listdir(run_dir)) if os.path.isdir(run_dir) else []
     if entries and not overwrite:
         raise ConfigError(
-            f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run or --overwrite to delete it"
+            f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run "
+            "or --overwrite to delete it"
         )
     foreign = [e for e in entries if e not in RUN_FILES]
     if foreign:
-        raise ConfigError(f"--overwrite: refusing to delete {run_dir}: it holds {foreign[0]!r}, which a run does not write")
+        raise ConfigError(
+            f"--overwrite: refusing to delete {run_dir}: it holds {foreign[0]!r}, which a run does not write"
+        )
 
 
 def state_bytes(env, config: Config) -> int:
-    """Bytes of the seeds' whole training state (replay buffer included), from `jax.eval_shape`: nothing is allocated."""
+    """Bytes of the seeds' whole training state (replay buffer included), from `jax.eval_shape`: nothing is
+    allocated."""
     init, _ = make_train(env, config)
     keys = jax.ShapeDtypeStruct((config.run.seeds, 2), jnp.uint32)
     shapes = jax.eval_shape(jax.vmap(init), keys)
@@ -181,5 +185,3 @@ def delete_run_dir(run_dir: str) -> None:
     if multihost.is_main() and os.path.isdir(run_dir):
         shutil.rmtree(run_dir)
     multihost.barrier("bidal_jax.run.preflight.delete_run_dir")
-
-

@@ -31,7 +31,9 @@ def rule(name: str) -> Rule:
 def check_field(name: str, value: Any) -> None:
     """Raise `ConfigError` when `value` breaks the rule of the config field `name`."""
     r = rule(name)
-    bad_type = isinstance(value, bool) or not (isinstance(value, r.kind) or (r.kind is float and isinstance(value, int)))
+    bad_type = isinstance(value, bool) or not (
+        isinstance(value, r.kind) or (r.kind is float and isinstance(value, int))
+    )
     if bad_type:
         raise ConfigError(f"{option(name)} {value!r}: must be {r.what}, not a {type(value).__name__}")
     if r.kind is float and not math.isfinite(value):

@@ -33,8 +33,16 @@ from experiments.bench.programs import seeded_program
 def summarise(events: list[dict], top: int = 10) -> list[dict]:
     """Per (process, thread) of a Chrome/Perfetto trace's complete ("X") events: the seconds they
     add up to, their count and the `top` names by seconds; largest total first."""
-    names = {(e["pid"], None): e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
-    names.update({(e["pid"], e["tid"]): e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "thread_name"})
+    names = {
+        (e["pid"], None): e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+    }
+    names.update(
+        {
+            (e["pid"], e["tid"]): e["args"]["name"]
+            for e in events
+            if e.get("ph") == "M" and e.get("name") == "thread_name"
+        }
+    )
     seconds, count = collections.Counter(), collections.Counter()
     by_name = collections.defaultdict(collections.Counter)
     for e in events:
@@ -44,8 +52,10 @@ def summarise(events: list[dict], top: int = 10) -> list[dict]:
         seconds[where] += e.get("dur", 0) / 1e6
         count[where] += 1
         by_name[where][e["name"]] += e.get("dur", 0) / 1e6
-    return [{"process": p, "thread": t, "seconds": s, "events": count[(p, t)], "top": by_name[(p, t)].most_common(top)}
-            for (p, t), s in seconds.most_common()]
+    return [
+        {"process": p, "thread": t, "seconds": s, "events": count[(p, t)], "top": by_name[(p, t)].most_common(top)}
+        for (p, t), s in seconds.most_common()
+    ]
 
 
 def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10) -> tuple[float, list[dict]]:
@@ -67,7 +77,9 @@ def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10) ->
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m experiments.bench.epoch_profile", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.bench.epoch_profile", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--env", default="planar_reach", choices=envs_mjx.names())
     parser.add_argument("--agent", default="proprio_baseline", choices=list(AGENTS))
     parser.add_argument("--seeds", type=int, default=1)
@@ -82,9 +94,11 @@ def main(argv: list[str] | None = None) -> None:
     out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
     wall, rows = profile_epoch(args.env, args.agent, args.seeds, out, args.top)
     device = jax.devices()[0]
-    print(f"{args.env} {args.agent}, {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
-          f"traced epoch {wall:.2f} s (profiling slows it); trace in {out}")
-    for row in rows[:args.streams]:
+    print(
+        f"{args.env} {args.agent}, {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
+        f"traced epoch {wall:.2f} s (profiling slows it); trace in {out}"
+    )
+    for row in rows[: args.streams]:
         print(f"\n{row['process']} / {row['thread']}: {row['seconds']:.3f} s in {row['events']:,} events")
         for op, seconds in row["top"]:
             print(f"  {seconds:8.3f} s  {op[:100]}")

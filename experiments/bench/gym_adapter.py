@@ -70,7 +70,9 @@ def interleaved_medians(runs: dict[str, Callable[[], None]], repeats: int) -> di
 
 def main(argv: list[str] | None = None) -> None:
     """Print the adapter's and native MuJoCo's cost per env step as a Markdown table."""
-    parser = argparse.ArgumentParser(prog="python -m experiments.bench.gym_adapter", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.bench.gym_adapter", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--env", default="planar_reach", choices=envs_mjx.names())
     parser.add_argument("--num-envs", nargs="+", type=int, default=[1, 16, 64, 256])
     parser.add_argument("--steps", type=int, default=100, help="env steps per timed run")

@@ -18,6 +18,7 @@ import dataclasses
 import json
 import statistics
 import time
+
 import jax
 import numpy as np
 
@@ -104,8 +105,14 @@ def sharded_training(
     compile_seconds = time.perf_counter() - start
     seconds = _timed(one_epoch, repeats)
     steps = seeds * config.cycles_per_epoch * config.num_envs * env.episode_length
-    return {"devices": len(devices), "env_shards": shards, "seeds": seeds, "epoch_seconds": seconds, "env_steps_per_second": steps / seconds,
-            "compile_and_first_epoch_seconds": compile_seconds}
+    return {
+        "devices": len(devices),
+        "env_shards": shards,
+        "seeds": seeds,
+        "epoch_seconds": seconds,
+        "env_steps_per_second": steps / seconds,
+        "compile_and_first_epoch_seconds": compile_seconds,
+    }
 
 
 def native_steps_per_second(name: str, num_envs: int, steps: int, repeats: int, threads: int = 2) -> float:
@@ -133,7 +140,9 @@ def native_steps_per_second(name: str, num_envs: int, steps: int, repeats: int, 
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m experiments.bench.throughput", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.bench.throughput", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--envs", nargs="+", default=["planar_reach"], choices=envs_mjx.names())
     parser.add_argument("--num-envs", nargs="+", type=int, default=[64, 256, 1024])
     parser.add_argument("--steps", type=int, default=50, help="control periods per timed rollout")
@@ -142,13 +151,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--skip-train", action="store_true", help="skip the training-epoch figures")
     parser.add_argument("--skip-native", action="store_true", help="skip native MuJoCo")
     parser.add_argument("--json", default="", help="also write the figures to this JSON file")
-    parser.add_argument("--devices", nargs="+", type=int, default=None,
-                        help="instead: training throughput of --seeds seeds of the first env's preset on each of "
-                        "these device counts (e.g. 1 2 4), with --agent: seeds over devices (and --env-shards), "
-                        "as a run lays them out")
+    parser.add_argument(
+        "--devices",
+        nargs="+",
+        type=int,
+        default=None,
+        help="instead: training throughput of --seeds seeds of the first env's preset on each of "
+        "these device counts (e.g. 1 2 4), with --agent: seeds over devices (and --env-shards), "
+        "as a run lays them out",
+    )
     parser.add_argument("--seeds", type=int, default=8, help="seeds of the --devices benchmark")
-    parser.add_argument("--env-shards", type=int, default=1,
-                        help="--devices benchmark: at most this many devices split each seed's envs (as a run's --env-shards)")
+    parser.add_argument(
+        "--env-shards",
+        type=int,
+        default=1,
+        help="--devices benchmark: at most this many devices split each seed's envs (as a run's --env-shards)",
+    )
     args = parser.parse_args(argv)
 
     device = jax.devices()[0]
@@ -172,7 +190,11 @@ def main(argv: list[str] | None = None) -> None:
     columns = list(dict.fromkeys(k for row in rows for k in row))
     print("\n| " + " | ".join(columns) + " |\n|" + " --- |" * len(columns))
     for row in rows:
-        print("| " + " | ".join(f"{row[c]:,.0f}" if isinstance(row.get(c), float) else str(row.get(c, "")) for c in columns) + " |")
+        print(
+            "| "
+            + " | ".join(f"{row[c]:,.0f}" if isinstance(row.get(c), float) else str(row.get(c, "")) for c in columns)
+            + " |"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": str(device), "rows": rows}, f, indent=2)
@@ -182,8 +204,7 @@ def scaling(args: argparse.Namespace) -> None:
     """The --devices benchmark: one row per device count, with the speed-up over the first row."""
     bad = [n for n in args.devices if not 1 <= n <= jax.device_count()]
     if bad:
-        raise SystemExit(f"error: --devices {bad[0]}: must be between 1 and the {jax.device_count()} visible "
-                         f"device(s)")
+        raise SystemExit(f"error: --devices {bad[0]}: must be between 1 and the {jax.device_count()} visible device(s)")
     try:
         validate.check_field("env_shards", args.env_shards)
     except ConfigError as err:
@@ -194,12 +215,18 @@ def scaling(args: argparse.Namespace) -> None:
         print(json.dumps(rows[-1]), flush=True)
     base = rows[0]
     print(f"\n{args.envs[0]} {args.agent}, {args.seeds} seeds: training throughput by device count\n")
-    print("| devices | env shards per seed | s / epoch | env steps / s (with learning) | speed-up | scaling efficiency |\n"
-          "| --- | --- | --- | --- | --- | --- |")
+    print(
+        "| devices | env shards per seed | s / epoch | env steps / s (with learning) | speed-up | "
+        "scaling efficiency |\n"
+        "| --- | --- | --- | --- | --- | --- |"
+    )
     for row in rows:
         speedup = row["env_steps_per_second"] / base["env_steps_per_second"]
-        print(f"| {row['devices']} | {row['env_shards']} | {row['epoch_seconds']:.2f} | {row['env_steps_per_second']:,.0f} | {speedup:.2f}× | "
-              f"{speedup * base['devices'] / row['devices']:.0%} |")
+        print(
+            f"| {row['devices']} | {row['env_shards']} | {row['epoch_seconds']:.2f} | "
+            f"{row['env_steps_per_second']:,.0f} | {speedup:.2f}× | "
+            f"{speedup * base['devices'] / row['devices']:.0%} |"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": str(jax.devices()[0]), "rows": rows}, f, indent=2)

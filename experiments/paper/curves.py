@@ -13,7 +13,8 @@ Budget: one epoch count per task for every agent (`EPOCHS`, overridden for all t
 `--epochs`): planar_reach 40, ur5_reach 30, nicol_slide 100, nicol_lift 100. These are the env
 presets of bidal_jax/config.py except two: ur5_reach gets 30 rather than its preset's 15 (too
 few for the visual agents), and planar_reach's image agents get the task's 40 rather than their
-preset's 20, so that every curve of a panel covers the same env steps. The other settings are the env presets' (NICOL: 512 envs, ...); learner and network
+preset's 20, so that every curve of a panel covers the same env steps. The other settings are the env
+presets' (NICOL: 512 envs, ...); learner and network
 options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to every run.
 
 Faithful to the paper by default: no held starts. `--held-starts` runs nicol_lift with half of
@@ -75,38 +76,64 @@ SECONDS = {"planar_reach": _REACH, "ur5_reach": _REACH, "nicol_slide": _NICOL, "
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=PROG, description=__doc__.split("\n\n")[0], allow_abbrev=False,
+        prog=PROG,
+        description=__doc__.split("\n\n")[0],
+        allow_abbrev=False,
         epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
         "and --checkpoint-every are passed to every run.",
     )
-    parser.add_argument("--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})")
+    parser.add_argument(
+        "--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})"
+    )
     parser.add_argument("--agents", default=",".join(AGENTS), help="comma list of agents (default all five)")
     parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped as one program")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
-    parser.add_argument("--epochs", type=int, default=None, help="epochs of every run of every task (default per "
-                        "task: " + ", ".join(f"{t} {e}" for t, e in EPOCHS.items()) + ")")
-    parser.add_argument("--out", default=None, help="output folder (default results/curves, or results/curves-held "
-                        "with --held-starts)")
-    parser.add_argument("--held-starts", action="store_true", help=f"{HELD_TASK} starts {HELD_STARTS:g} of its "
-                        "training episodes with the cube held (a labelled variant; the paper has none)")
+    parser.add_argument(
+        "--epochs",
+        type=int,
+        default=None,
+        help="epochs of every run of every task (default per "
+        "task: " + ", ".join(f"{t} {e}" for t, e in EPOCHS.items()) + ")",
+    )
+    parser.add_argument(
+        "--out", default=None, help="output folder (default results/curves, or results/curves-held with --held-starts)"
+    )
+    parser.add_argument(
+        "--held-starts",
+        action="store_true",
+        help=f"{HELD_TASK} starts {HELD_STARTS:g} of its "
+        "training episodes with the cube held (a labelled variant; the paper has none)",
+    )
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--dry-run", action="store_true", help="print the plan and its estimated time; write nothing")
-    mode.add_argument("--report", action="store_true", help="train nothing: write curves.png/.csv and table.md "
-                      "from the run folders that have epochs")
+    mode.add_argument(
+        "--report",
+        action="store_true",
+        help="train nothing: write curves.png/.csv and table.md from the run folders that have epochs",
+    )
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
 
-def make_arms(tasks: Sequence[str], agents: Sequence[str], args: argparse.Namespace, extra: dict[str, Any],
-              out: str) -> list[Arm]:
+def make_arms(
+    tasks: Sequence[str], agents: Sequence[str], args: argparse.Namespace, extra: dict[str, Any], out: str
+) -> list[Arm]:
     """The runs, task by task in the grid's order, each with its task's epochs for every agent."""
     arms = []
     for task in (t for t in TASKS if t in tasks):
         held = {"exploration_starts": HELD_STARTS} if args.held_starts and task == HELD_TASK else {}
         for agent in (a for a in AGENTS if a in agents):
-            given = {"env": task, "agent": agent, "seeds": args.seeds, "seed": args.seed, **extra, **held,
-                     "epochs": args.epochs or EPOCHS[task], "run_dir": os.path.join(out, task, agent)}
+            given = {
+                "env": task,
+                "agent": agent,
+                "seeds": args.seeds,
+                "seed": args.seed,
+                **extra,
+                **held,
+                "epochs": args.epochs or EPOCHS[task],
+                "run_dir": os.path.join(out, task, agent),
+            }
             arms.append(Arm(f"{task}/{agent}", given))
     return arms
 
@@ -167,8 +194,11 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> st
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
     """The line naming the runs without epochs and those short of their epochs."""
     missing = [arm.name for arm in arms if arm.name not in runs]
-    unfinished = [f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})" for arm in arms
-                  if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs]
+    unfinished = [
+        f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
+        for arm in arms
+        if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
+    ]
     if not missing and not unfinished:
         return "No run is missing or unfinished."
     return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}."
@@ -182,19 +212,21 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str 
         return None
     report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
     total = sum(float(r["wall_time"][-1]) for r in runs.values())
-    return "\n".join([
-        f"# {title}",
-        "",
-        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
-        "then the run's wall time (its last `wall_time`, compilation included).",
-        "",
-        results_table(arms, runs, last_n),
-        "",
-        f"Total wall time of the runs: {duration(total)}.",
-        "",
-        gaps(arms, runs),
-        "",
-    ])
+    return "\n".join(
+        [
+            f"# {title}",
+            "",
+            f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
+            "then the run's wall time (its last `wall_time`, compilation included).",
+            "",
+            results_table(arms, runs, last_n),
+            "",
+            f"Total wall time of the runs: {duration(total)}.",
+            "",
+            gaps(arms, runs),
+            "",
+        ]
+    )
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -42,9 +42,21 @@ AGENTS = ("multimodal_bidal", "multimodal_baseline", "proprio_baseline")
 SEGMENTS = "ee_pos,ee_rot,obj_pos"
 # the paper's Table II: κ -> agent -> (mean, std)
 PAPER = {
-    0.05: {"multimodal_bidal": (0.874, 0.0127), "multimodal_baseline": (0.886, 0.0143), "proprio_baseline": (0.882, 0.0191)},
-    0.10: {"multimodal_bidal": (0.764, 0.0222), "multimodal_baseline": (0.696, 0.0542), "proprio_baseline": (0.699, 0.0519)},
-    0.15: {"multimodal_bidal": (0.615, 0.0320), "multimodal_baseline": (0.590, 0.0410), "proprio_baseline": (0.554, 0.0358)},
+    0.05: {
+        "multimodal_bidal": (0.874, 0.0127),
+        "multimodal_baseline": (0.886, 0.0143),
+        "proprio_baseline": (0.882, 0.0191),
+    },
+    0.10: {
+        "multimodal_bidal": (0.764, 0.0222),
+        "multimodal_baseline": (0.696, 0.0542),
+        "proprio_baseline": (0.699, 0.0519),
+    },
+    0.15: {
+        "multimodal_bidal": (0.615, 0.0320),
+        "multimodal_baseline": (0.590, 0.0410),
+        "proprio_baseline": (0.554, 0.0358),
+    },
 }
 SIZE_OPTIONS = ("num_envs", "cycles_per_epoch", "updates_per_cycle", "batch_size", "buffer_episodes", "eval_envs")
 
@@ -68,8 +80,15 @@ def agent_arm(agent: str, run_dir: str, given: dict, runs: int) -> Arm:
 def kappa_curves(run: dict, runs: int) -> list[report.Curve]:
     """The run's curve split by κ: one curve per κ over its `runs` seeds."""
     return [
-        report.Curve(f"κ = {k:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"], run["wall_time"],
-                   run["success"][:, i * runs:(i + 1) * runs])
+        report.Curve(
+            f"κ = {k:.0%}",
+            run["agent"],
+            run["dir"],
+            run["epoch"],
+            run["env_steps"],
+            run["wall_time"],
+            run["success"][:, i * runs : (i + 1) * runs],
+        )
         for i, k in enumerate(KAPPAS)
     ]
 
@@ -87,7 +106,11 @@ def table(curves: dict[tuple[float, str], report.Curve]) -> str:
                 cells.append("— ")
             else:
                 mean, std, used = report.final_success(curve, LAST_N[k])
-                partial = f" (last {used} of {len(curve.epoch)} epochs)" if used < LAST_N[k] else f" ({len(curve.epoch)} epochs)"
+                partial = (
+                    f" (last {used} of {len(curve.epoch)} epochs)"
+                    if used < LAST_N[k]
+                    else f" ({len(curve.epoch)} epochs)"
+                )
                 cells.append(f"{mean:.3f} ± {std:.4f}{partial}")
             cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
         rows.append(cells)
@@ -112,7 +135,9 @@ def write_report(out: str, runs: int) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m experiments.paper.noise_robustness", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.paper.noise_robustness", description=__doc__.split("\n\n")[0]
+    )
     parser.add_argument("--out", default=os.path.join("results", "noise"), help="results folder")
     parser.add_argument("--env", default="nicol_slide", choices=envs_mjx.names())
     parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
@@ -128,8 +153,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
-             **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
+    given = {
+        "env": args.env,
+        "seed": args.seed,
+        "noise_segments": args.noise_segments,
+        **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None},
+    }
     given["epochs"] = args.epochs or resolve(given).run.epochs
     try:
         if args.runs < 1:
@@ -138,8 +167,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         return cli.exit_code(err)
     os.makedirs(args.out, exist_ok=True)
-    print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
-          f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
+    print(
+        f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
+        f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}"
+    )
     loop.enable_compilation_cache()
     arms = [agent_arm(agent, os.path.join(args.out, agent), given, args.runs) for agent in args.agents]
     code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)

@@ -2,7 +2,8 @@
 from the representation of a sliding run.
 
     python -m experiments.paper.transfer_learning [--seeds 5] [--out results/transfer] [--source RUN_DIR]
-        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch] [any learner or network option of experiments.run]
+        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch]
+        [any learner or network option of experiments.run]
 
 Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
 
@@ -61,26 +62,44 @@ ARMS = ("source", "transfer", "scratch")
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=PROG, description=__doc__.split("\n\n")[0], allow_abbrev=False,
+        prog=PROG,
+        description=__doc__.split("\n\n")[0],
+        allow_abbrev=False,
         epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
         "and --checkpoint-every are passed to all three runs.",
     )
-    parser.add_argument("--out", default=None, help="output folder (default results/transfer, or results/transfer-held "
-                        "with --held-starts)")
-    parser.add_argument("--source", default=None, metavar="RUN_DIR", help="a nicol_slide run to transfer from "
-                        "instead of training OUT/source")
-    parser.add_argument("--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' "
-                        "(default: the latest)")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default results/transfer, or results/transfer-held with --held-starts)",
+    )
+    parser.add_argument(
+        "--source",
+        default=None,
+        metavar="RUN_DIR",
+        help="a nicol_slide run to transfer from instead of training OUT/source",
+    )
+    parser.add_argument(
+        "--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' (default: the latest)"
+    )
     parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source (default: its preset)")
     parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: preset)")
     parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped (the source needs as many)")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
-    parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
-                        "training episodes with the cube held (a labelled variant; the paper has none)")
-    parser.add_argument("--arms", default=",".join(ARMS), help="the runs this command trains, a comma list of "
-                        f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
-                        "runs can be trained by separate processes at once; 'none' only writes the results")
+    parser.add_argument(
+        "--held-starts",
+        action="store_true",
+        help=f"both arms start {HELD_STARTS:g} of their "
+        "training episodes with the cube held (a labelled variant; the paper has none)",
+    )
+    parser.add_argument(
+        "--arms",
+        default=",".join(ARMS),
+        help="the runs this command trains, a comma list of "
+        f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
+        "runs can be trained by separate processes at once; 'none' only writes the results",
+    )
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser

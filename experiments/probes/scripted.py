@@ -102,7 +102,9 @@ def main(argv: list[str] | None = None) -> None:
         ("nicol_slide", NicolSlide(render=False), key_slide),
         ("nicol_lift", NicolLift(render=False), key_lift),
     ):
-        success = jax.jit(evaluate, static_argnums=(0, 1, 3))(env, scripted_policy(env.observation_spec), key, args.episodes)
+        success = jax.jit(evaluate, static_argnums=(0, 1, 3))(
+            env, scripted_policy(env.observation_spec), key, args.episodes
+        )
         print(f"{name}: scripted success {float(success.mean()):.2f} over {args.episodes} episodes")
 
 

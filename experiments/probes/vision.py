@@ -111,9 +111,15 @@ def probe(env, strides: tuple[int, ...], key: jax.Array, n_frames: int, steps: i
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], allow_abbrev=False)
-    parser.add_argument("--envs", default="planar_reach,ur5_reach", help="comma list of envs (default planar_reach,ur5_reach)")
-    parser.add_argument("--conv-strides", nargs="+", default=[NetworkConfig.conv_strides],
-                        help="one or more stride settings of the vision branch, e.g. 3,2,2,2 2,2,1,1")
+    parser.add_argument(
+        "--envs", default="planar_reach,ur5_reach", help="comma list of envs (default planar_reach,ur5_reach)"
+    )
+    parser.add_argument(
+        "--conv-strides",
+        nargs="+",
+        default=[NetworkConfig.conv_strides],
+        help="one or more stride settings of the vision branch, e.g. 3,2,2,2 2,2,1,1",
+    )
     parser.add_argument("--frames", type=int, default=16000, help="start-state frames per env, a fifth held out")
     parser.add_argument("--steps", type=int, default=3000, help="Adam updates of the probe")
     parser.add_argument("--batch", type=int, default=256, help="frames per update")
@@ -137,8 +143,10 @@ def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]
 
 def row(name: str, env, strides: tuple[int, ...], result: dict) -> str:
     rmse = ", ".join(f"{x:.3f} ({c:.3f})" for x, c in zip(result["rmse"], result["constant_rmse"]))
-    return (f"| {name} | {','.join(map(str, strides))} | {env.epsilon:g} | {rmse} | {result['located']:.3f} | "
-            f"{result['constant']:.3f} | {result['frames'][0]:,} / {result['frames'][1]:,} |")
+    return (
+        f"| {name} | {','.join(map(str, strides))} | {env.epsilon:g} | {rmse} | {result['located']:.3f} | "
+        f"{result['constant']:.3f} | {result['frames'][0]:,} / {result['frames'][1]:,} |"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -147,15 +155,25 @@ def main(argv: list[str] | None = None) -> int:
         envs, strides = checked(args)
     except ConfigError as err:
         return cli.exit_code(err)
-    lines = ["| env | conv strides | ε | held-out RMSE per goal dimension (constant prediction) | located (within ε) | constant prediction | "
-             "frames train / held out |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        "| env | conv strides | ε | held-out RMSE per goal dimension (constant prediction) | located (within ε) | "
+        "constant prediction | "
+        "frames train / held out |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
     print("\n".join(lines), flush=True)
     for name in envs:
         env = envs_mjx.make(name, render=True)
         for s in strides:
             start = time.time()
-            lines.append(row(name, env, s, probe(env, s, jax.random.PRNGKey(args.seed), args.frames, args.steps,
-                                                 args.batch, args.lr)))
+            lines.append(
+                row(
+                    name,
+                    env,
+                    s,
+                    probe(env, s, jax.random.PRNGKey(args.seed), args.frames, args.steps, args.batch, args.lr),
+                )
+            )
             print(f"{lines[-1]}  ({time.time() - start:.0f} s)", flush=True)
     if args.out:
         with open(args.out, "w") as f:

@@ -78,7 +78,9 @@ def _tiny_batch(b=3, d=4, g=2, a=2, image=True):
 def test_representation_loss_matches_a_hand_composition():
     """The loss equals critic MSE + forward + inverse losses computed here from the networks."""
     cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, forward_weight=0.7, inverse_weight=0.2)
-    nets = make_networks(AGENTS["multimodal_bidal"], NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
+    nets = make_networks(
+        AGENTS["multimodal_bidal"], NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1)
+    )
     params = nets.init(jax.random.PRNGKey(0))
     target = jax.tree.map(lambda x: x * 0.9, params)
     batch = _tiny_batch()
@@ -159,7 +161,9 @@ def test_patch_conv_equals_flax_conv(size, stride, padding):
     np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
 
 
-@pytest.mark.parametrize("strides, features", [("3,2,2,2", 2 * 2 * 4), ("2,2,1,1", 10 * 10 * 4), ("2,2,2,2", 3 * 3 * 4)])
+@pytest.mark.parametrize(
+    "strides, features", [("3,2,2,2", 2 * 2 * 4), ("2,2,1,1", 10 * 10 * 4), ("2,2,2,2", 3 * 3 * 4)]
+)
 def test_conv_strides_set_the_vision_branch_feature_map(strides, features):
     """--conv-strides: the first layer unpadded, the others 'same'-padded, so the dense layer that
     ends the vision branch sees H×W×C features (42 → 14 → 7 → 4 → 2 for 3,2,2,2)."""

@@ -12,8 +12,9 @@ import pytest
 
 import envs_mjx
 from bidal_jax import acting, noise
-from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
-from bidal_jax.train import make_seeded, make_train, seed_sharding
+from bidal_jax.config import Config, RunConfig, TrainConfig
+from bidal_jax.run.devices import make_seeded, seed_sharding
+from bidal_jax.train import make_train
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 NOISY = dataclasses.replace(TINY, noise_segments="q")
@@ -68,7 +69,7 @@ def test_only_the_named_segments_get_noise_never_achieved_goals_or_rewards(env):
 
 
 def _train(env, config, kappas=None, epochs=2, count_traces=False):
-    init, epoch = make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), config)
+    init, epoch = make_train(env, Config(RunConfig(agent="proprio_baseline"), config))
     if count_traces:
         chex.clear_trace_counter()
         epoch = chex.assert_max_traces(epoch, n=1)
@@ -102,7 +103,9 @@ def test_one_traced_epoch_serves_every_kappa(noisy_runs):
     assert np.all(error[0] == 0) and error[1].std() > 0 and error[2].std() > 2 * error[1].std()
     # the last rollout's noise has std κσ with σ from its refresh (the σ still in the state)
     last = (np.asarray(state.buffer.position)[0] - TINY.num_envs) % TINY.buffer_episodes
-    newest = error.reshape(len(KAPPAS), TINY.buffer_episodes, -1, 2)[:, last:last + TINY.num_envs].reshape(len(KAPPAS), -1, 2)
+    newest = error.reshape(len(KAPPAS), TINY.buffer_episodes, -1, 2)[:, last : last + TINY.num_envs].reshape(
+        len(KAPPAS), -1, 2
+    )
     sigma = np.asarray(state.noise.sigma)
     assert (sigma > 0).all()
     np.testing.assert_allclose(newest[2].std(axis=0), KAPPAS[2] * sigma[2], rtol=0.25)
@@ -116,6 +119,8 @@ def test_kappa_zero_equals_a_run_without_noise(env, noisy_runs):
     noisy_state, noisy, _ = noisy_runs
     for before, after in zip(plain, noisy):
         for key, value in before.items():
-            np.testing.assert_allclose(np.asarray(value)[0], np.asarray(after[key])[0], rtol=1e-5, atol=1e-7, err_msg=key)
+            np.testing.assert_allclose(
+                np.asarray(value)[0], np.asarray(after[key])[0], rtol=1e-5, atol=1e-7, err_msg=key
+            )
     for a, b in zip(jax.tree.leaves(plain_state.params), jax.tree.leaves(noisy_state.params)):
         np.testing.assert_allclose(np.asarray(a)[0], np.asarray(b)[0], rtol=1e-5, atol=1e-7)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
-from bidal_jax.train import make_seeded, make_train
-from bidal_jax.run.validate import ConfigError
+from bidal_jax.config import Config, NetworkConfig, RunConfig, TrainConfig
+from bidal_jax.run.devices import make_seeded
+from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
@@ -31,10 +31,12 @@ class FoldedPlanarReach(PlanarReach):
 def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(agent):
     """One compile serves every epoch and seed; with exploration_starts 0.5, some training
     episodes (picked at random) begin from the env's exploration start and some do not."""
-    spec = AGENTS[agent]
-    env = FoldedPlanarReach(render=spec.uses_image)
+    config = Config(
+        RunConfig(agent=agent), dataclasses.replace(TINY, exploration_starts=0.5), NetworkConfig(conv_channels=4)
+    )
+    env = FoldedPlanarReach(render=config.agent.uses_image)
     chex.clear_trace_counter()
-    init, epoch = make_train(env, spec, NetworkConfig(conv_channels=4), dataclasses.replace(TINY, exploration_starts=0.5))
+    init, epoch = make_train(env, config)
     init, epoch = make_seeded(init, chex.assert_max_traces(epoch, n=1))
     state = init(jax.random.split(jax.random.PRNGKey(0), 2))
     for _ in range(3):
@@ -48,7 +50,7 @@ def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(age
     assert np.asarray(state.proprio_norm.count).tolist() == [3 * 2 * 4 * 51] * 2
     for key in ("critic_loss", "actor_loss", "q", "train_success"):
         assert np.isfinite(np.asarray(metrics[key])).all(), key
-    if spec.bidal:
+    if config.agent.bidal:
         assert (np.asarray(metrics["intrinsic_reward"]) <= 0).all()
         assert np.isfinite(np.asarray(metrics["inverse_loss"])).all()
     folded = np.asarray(jax.jit(env.exploration_reset)(jax.random.PRNGKey(1)).obs["proprio"])
@@ -60,17 +62,11 @@ def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(age
     assert not np.array_equal(np.asarray(leaves[0][0]), np.asarray(leaves[0][1]))
 
 
-def test_exploration_starts_need_an_env_that_has_them():
-    env = envs_mjx.make("planar_reach", render=False)
-    with pytest.raises(ConfigError, match="--exploration-starts 0.5: env planar_reach has no exploration start"):
-        make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), dataclasses.replace(TINY, exploration_starts=0.5))
-
-
 @pytest.mark.slow
 def test_proprio_baseline_learns_planar_reach():
     env = envs_mjx.make("planar_reach", render=False)
     config = dataclasses.replace(TrainConfig(), eval_envs=64)
-    init, epoch = make_seeded(*make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), config))
+    init, epoch = make_seeded(*make_train(env, Config(RunConfig(agent="proprio_baseline"), config)))
     state = init(jax.random.split(jax.random.PRNGKey(0), 1))
     best = 0.0
     for _ in range(40):

@@ -30,7 +30,9 @@ def _geom_level(env, name):
     return geom_gray_levels(env.mj_model)[mujoco.mj_name2id(env.mj_model, mujoco.mjtObj.mjOBJ_GEOM, name)]
 
 
-@pytest.mark.parametrize("q, goal_q", [((0.3, 0.8), (-2.0, 1.0)), ((-1.2, -1.5), (2.5, -0.4)), ((2.9, 0.2), (0.0, 2.0))])
+@pytest.mark.parametrize(
+    "q, goal_q", [((0.3, 0.8), (-2.0, 1.0)), ((-1.2, -1.5), (2.5, -0.4)), ((2.9, 0.2), (0.0, 2.0))]
+)
 def test_end_effector_and_target_appear_where_forward_kinematics_puts_them(scene, q, goal_q):
     env, render_at = scene
     q, goal = jnp.array(q), forward_kinematics(jnp.array(goal_q))
@@ -45,7 +47,17 @@ def test_end_effector_and_target_appear_where_forward_kinematics_puts_them(scene
 def test_image_changes_when_the_arm_moves_and_levels_are_distinct(scene):
     env, render_at = scene
     goal = jnp.array([0.0, -0.2])
-    a, b = np.asarray(render_at(jnp.array([0.0, 0.5], ), goal)), np.asarray(render_at(jnp.array([1.5, 0.5]), goal))
+    a, b = (
+        np.asarray(
+            render_at(
+                jnp.array(
+                    [0.0, 0.5],
+                ),
+                goal,
+            )
+        ),
+        np.asarray(render_at(jnp.array([1.5, 0.5]), goal)),
+    )
     assert (a != b).sum() > 10
     levels = {_geom_level(env, n) for n in ("floor", "link1", "ee", "target")}
     assert len(levels) == 4

@@ -32,8 +32,16 @@ def compiled(name):
     def random_rollout(states, key):
         # actions beyond [-1, 1] check the env's clipping
         return acting.rollout(
-            env, acting.random_policy(env.action_size, scale=1.5), key, states=states, steps=N_STEPS,
-            record=lambda step: (step.next_state.obs["proprio"], step.next_state.data.qpos, step.next_state.obs["achieved_goal"]),
+            env,
+            acting.random_policy(env.action_size, scale=1.5),
+            key,
+            states=states,
+            steps=N_STEPS,
+            record=lambda step: (
+                step.next_state.obs["proprio"],
+                step.next_state.data.qpos,
+                step.next_state.obs["achieved_goal"],
+            ),
         )
 
     return env, resets, random_rollout

@@ -15,7 +15,7 @@ import envs_mjx
 from bidal_jax import acting
 from envs_mjx import nicol
 from envs_mjx.nicol import NicolLift, NicolSlide
-from experiments.scripted import run_episodes
+from experiments.probes.scripted import run_episodes
 
 TASKS_SEGMENTS = (
     ("ee_pos", 3), ("ee_rot", 3), ("obj_pos", 3), ("obj_rot", 3), ("obj_rel_pos", 3),
@@ -142,7 +142,8 @@ def test_exploration_reset_holds_the_cube_and_draws_the_reset_goal(lift, lift_re
     rel = np.asarray(eased.obs["proprio"][:, spec.segment_slice("obj_rel_pos")])
     closure = np.asarray(eased.obs["proprio"][:, spec.segment_slice("q")][:, 6])
     assert (np.linalg.norm(rel, axis=1) < 0.01).all() and (closure > 1.0).all()
-    np.testing.assert_array_equal(np.asarray(eased.obs["desired_goal"]), np.asarray(lift_resets.obs["desired_goal"][:8]))
+    reset_goals = np.asarray(lift_resets.obs["desired_goal"][:8])
+    np.testing.assert_array_equal(np.asarray(eased.obs["desired_goal"]), reset_goals)
     assert lift.has_exploration_start and not NicolSlide.has_exploration_start
 
 

@@ -35,7 +35,9 @@ def rollout(env):
 
     def run(states, actions):
         record = lambda step: step.next_state.data.qpos  # noqa: E731
-        return acting.rollout(env, acting.open_loop, jax.random.PRNGKey(0), states=states, inputs=actions, record=record)[1]
+        return acting.rollout(
+            env, acting.open_loop, jax.random.PRNGKey(0), states=states, inputs=actions, record=record
+        )[1]
 
     return jax.jit(run)
 

@@ -41,8 +41,18 @@ def test_help_documents_every_option(capsys):
     with pytest.raises(SystemExit):
         run.main(["--help"])
     out = capsys.readouterr().out
-    for option in ("--env", "--agent", "--seeds", "--epochs", "--num-envs", "--run-dir", "--gamma", "--intrinsic-lambda",
-                   "--latent-size", "--batch-size"):
+    for option in (
+        "--env",
+        "--agent",
+        "--seeds",
+        "--epochs",
+        "--num-envs",
+        "--run-dir",
+        "--gamma",
+        "--intrinsic-lambda",
+        "--latent-size",
+        "--batch-size",
+    ):
         assert option in out, option
 
 

@@ -2,7 +2,6 @@
 same 4 seeds on one device, and a checkpoint written on 4 devices resumes on 1. One seed's envs
 split over 4 devices (shard_map) keep one set of parameters and resume on 1 device."""
 
-import csv
 import os
 import subprocess
 import sys
@@ -12,33 +11,12 @@ import jax
 import pytest
 
 from bidal_jax.config import TrainConfig
-from bidal_jax.train import device_layout, seed_devices
+from bidal_jax.run.devices import device_layout, seed_devices
 from experiments import run
+from tests.helpers import REPO, assert_same_metrics, rows
+from tests.helpers import TINY as TINY_RUN
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-TINY = [
-    "--env", "planar_reach", "--agent", "proprio_baseline", "--num-envs", "4", "--cycles-per-epoch", "2",
-    "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--quiet",
-    "--seeds", "4", "--checkpoint-every", "1",
-]
-TIMING = ("wall_time", "env_steps_per_second")
-
-
-def rows(run_dir):
-    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
-        return [{k: float(v) for k, v in r.items() if k not in TIMING} for r in csv.DictReader(f)]
-
-
-def assert_same_metrics(a_dir, b_dir) -> None:
-    """The same seeds, the same numbers up to float rounding: on one device the 4 seeds are one
-    batch of the vmapped matmuls, on 4 devices each holds a batch of 1, and XLA:CPU's kernels for
-    the two batch sizes round the last bits differently (measured: relative 1e-7 after 2 epochs)."""
-    for a, b in zip(rows(a_dir), rows(b_dir), strict=True):
-        assert a.keys() == b.keys()
-        for key in a:
-            exact = key.startswith(("eval_success", "train_success", "env_steps", "epoch"))
-            assert a[key] == (b[key] if exact else pytest.approx(b[key], rel=1e-4, abs=1e-6)), key
-
+TINY = [*TINY_RUN, "--seeds", "4", "--checkpoint-every", "1"]
 
 def test_seeds_spread_over_as_many_devices_as_divide_them():
     devices = [types.SimpleNamespace(process_index=0, name=f"d{i}") for i in range(4)]
@@ -83,13 +61,15 @@ def test_four_seeds_on_four_devices_match_one_device_and_resume_on_one(tmp_path,
 ENV_SHARDS = """
 import jax, numpy as np
 import envs_mjx
-from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
-from bidal_jax.train import device_layout, make_seeded, make_train
+from bidal_jax.config import Config, RunConfig, TrainConfig
+from bidal_jax.run.devices import device_layout, make_seeded
+from bidal_jax.train import make_train
 config = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 devices, shards = device_layout(1, config, 4)
 assert shards == 4, shards
 env = envs_mjx.make("planar_reach", render=False)
-init, epoch = make_seeded(*make_train(env, AGENTS["proprio_baseline"], NetworkConfig(), config, shards), devices, shards)
+config = Config(RunConfig(agent="proprio_baseline"), config)
+init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
 state, _ = epoch(init(jax.random.split(jax.random.PRNGKey(0), 1)))
 for leaf in jax.tree.leaves(state.params):  # averaged gradients: every shard holds the same parameters
     copies = [np.asarray(s.data) for s in leaf.addressable_shards]
@@ -102,12 +82,20 @@ assert [b.shape[1] for b in blocks] == [2] * 4 and not (blocks[0] == blocks[1]).
 @pytest.mark.slow
 def test_one_seeds_envs_split_over_four_devices_share_parameters_and_resume_on_one(tmp_path, capsys):
     env = {**os.environ, "XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=4"}
-    proc = subprocess.run([sys.executable, "-c", ENV_SHARDS], cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", ENV_SHARDS], cwd=REPO, env=env, capture_output=True, text=True, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     run_dir = str(tmp_path / "split")
     one_seed = [*TINY[:-4], "--seeds", "1", "--checkpoint-every", "1", "--env-shards", "4"]
-    proc = subprocess.run([sys.executable, "-m", "experiments.run", *one_seed, "--epochs", "2", "--run-dir", run_dir],
-                          cwd=REPO, env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-m", "experiments.run", *one_seed, "--epochs", "2", "--run-dir", run_dir],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "1 seed(s) on 4 device(s), envs split 4 ways" in proc.stderr
     # its buffer, kept in 4 blocks, continues in one (replay.relayout)

@@ -3,7 +3,6 @@ any moment (mid-save included) leaves a checkpoint to resume from; SIGINT and SI
 one and exit with 130 and 143."""
 
 import csv
-import dataclasses
 import os
 import signal
 import subprocess
@@ -14,10 +13,9 @@ import jax
 import numpy as np
 import pytest
 
-import envs_mjx
-from bidal_jax import config as config_lib
-from bidal_jax.run import checkpoint, loop
+from bidal_jax.run import checkpoint
 from experiments import run
+from tests.helpers import restored_state
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = [
@@ -32,15 +30,6 @@ TMP_SUFFIX = ".orbax-checkpoint-tmp"
 def metric_rows(run_dir) -> list[dict[str, str]]:
     with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
         return [{k: v for k, v in row.items() if k not in TIMING} for row in csv.DictReader(f)]
-
-
-def restored_state(run_dir):
-    """The whole TrainState of the run's latest checkpoint, and its epoch."""
-    saved = checkpoint.read_config(os.path.join(run_dir, "checkpoints"))
-    run_cfg, train_cfg, net = config_lib.from_dict(saved, str(run_dir))
-    env = envs_mjx.make(run_cfg.env, render=False)
-    state, step = loop.restore_state(env, dataclasses.replace(run_cfg, run_dir=str(run_dir)), train_cfg, net)
-    return state, step
 
 
 def assert_same_run(run_dir, reference) -> None:

@@ -11,12 +11,13 @@ import types
 
 import pytest
 
-from bidal_jax import acting
 from bidal_jax.run import multihost
-from bidal_jax.train import seed_devices
+from bidal_jax.run.devices import seed_devices
+from bidal_jax.run.policy import load_policy
 from bidal_jax.run.validate import ConfigError
 from experiments import run
-from test_sharding import REPO, TINY, assert_same_metrics, rows
+from tests.bidal_jax.run.test_devices import TINY
+from tests.helpers import REPO, assert_same_metrics, rows
 
 SLURM = {"SLURM_JOB_ID": "7", "SLURM_STEP_NODELIST": "node[1-2]", "SLURM_NTASKS": "2", "SLURM_PROCID": "1",
          "SLURM_LOCALID": "0"}
@@ -98,8 +99,15 @@ def launch(args: list[str], log_dir) -> list[tuple[int, str]]:
     try:
         for i, log in enumerate(logs):
             with open(log, "w") as f:
-                procs.append(subprocess.Popen([sys.executable, "-m", "experiments.run", *args], cwd=REPO,
-                                              env={**env, "JAX_PROCESS_ID": str(i)}, stdout=f, stderr=subprocess.STDOUT))
+                procs.append(
+                    subprocess.Popen(
+                        [sys.executable, "-m", "experiments.run", *args],
+                        cwd=REPO,
+                        env={**env, "JAX_PROCESS_ID": str(i)},
+                        stdout=f,
+                        stderr=subprocess.STDOUT,
+                    )
+                )
         codes = [p.wait(timeout=600) for p in procs]
     finally:
         for p in procs:
@@ -124,7 +132,7 @@ def test_two_processes_write_one_run_equal_to_one_process_and_resume_across_proc
     # the 2-process checkpoint's acting parameters load in this 1-device process (Orbax partial
     # restore, as evaluate and transfer read them); the checkpoint continues in this process, and
     # the 1-device one in 2 processes
-    assert acting.load_policy(str(multi)).step == 2
+    assert load_policy(str(multi)).step == 2
     assert run.main(["--resume", "--run-dir", str(multi), "--epochs", "3", "--quiet"]) == 0
     assert "on 1 device(s)" in capsys.readouterr().err
     for code, log in launch(["--resume", "--run-dir", str(single), "--epochs", "3", "--quiet"], tmp_path / "resumed"):

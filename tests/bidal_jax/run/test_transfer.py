@@ -1,8 +1,7 @@
-"""Transfer (paper Sec. IV-C; bidal_jax/transfer.py, experiments/transfer.py): a run started with
---init-from holds the source's encoder, forward and inverse models (its proprio rows matched by
-segment name) and normalisers, with fresh optimisers, read without the replay buffer; mismatches
-are refused before anything is written; the experiment skips finished runs, resumes interrupted
-ones and tabulates both arms.
+"""Transfer (paper Sec. IV-C; bidal_jax/run/transfer.py): a run started with --init-from holds the
+source's encoder, forward and inverse models (its proprio rows matched by segment name) and
+normalisers, with fresh optimisers, read without the replay buffer; mismatches are refused before
+anything is written.
 
 The mechanism is tested on planar_reach (proprio q 2, qdot 2) as the source and a planar_reach
 without qdot as the target: one source run and one transferred run (an image agent compiles in
@@ -18,14 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_validation import assert_refused
 
 import envs_mjx
-from bidal_jax import config as config_lib
-from bidal_jax.run import checkpoint, loop, transfer
+from bidal_jax.config import resolve
+from bidal_jax.run import checkpoint, preflight, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
-from experiments import grid, run, transfer as experiment
+from experiments import run
+from tests.helpers import assert_refused, restored_state
 
 NO_QDOT, RENAMED = "planar_reach_noqdot", "planar_reach_renamed"
 SOURCE_SEEDS, SEEDS = 3, 2
@@ -120,9 +119,7 @@ def transferred(source, tmp_path_factory):
 @pytest.fixture(scope="module")
 def source_state(source):
     """The source's whole latest training state, restored the ordinary way (buffer included)."""
-    run_cfg, train_cfg, net = config_lib.from_dict(checkpoint.read_config(os.path.join(source[0], "checkpoints")), "source")
-    env = envs_mjx.make("planar_reach", render=False)
-    return jax.device_get(loop.restore_state(env, dataclasses.replace(run_cfg, run_dir=source[0]), train_cfg, net)[0])
+    return jax.device_get(restored_state(source[0])[0])
 
 
 def test_restored_parts_equal_the_sources_by_name_and_the_proprio_rows_are_those_of_q(transferred, source_state):
@@ -155,7 +152,8 @@ def test_the_proprio_normaliser_follows_the_encoder_with_the_kept_rows(transferr
     assert float(src.count[0]) > 0 and float(fresh.proprio_norm.count[0]) == 0  # the source's statistics are real
     np.testing.assert_array_equal(initial.proprio_norm.count, src.count[:SEEDS])
     for field in ("total", "total_sq", "mean", "std"):
-        np.testing.assert_array_equal(getattr(initial.proprio_norm, field), getattr(src, field)[:SEEDS, :2], err_msg=field)
+        expected = getattr(src, field)[:SEEDS, :2]
+        np.testing.assert_array_equal(getattr(initial.proprio_norm, field), expected, err_msg=field)
     # goals reach only the fresh actor and critic: the goal normaliser starts fresh
     for a, b in zip(jax.tree.leaves(initial.goal_norm), jax.tree.leaves(fresh.goal_norm)):
         np.testing.assert_array_equal(a, b)
@@ -174,11 +172,16 @@ def test_the_transferred_run_trains_without_the_sources_buffer_and_records_its_s
 def test_resume_keeps_the_transfer_fields_and_does_not_transfer_again(transferred, source, monkeypatch, capsys):
     run_dir, _, _ = transferred
     monkeypatch.setattr(transfer, "check", lambda *a, **k: pytest.fail("a resumed run was checked for transfer"))
-    resumed = loop.prepare({"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make,
-                           resume=True)
-    assert (resumed[0].init_from, resumed[0].init_parts) == (source[1], ",".join(PARTS))
-    assert_refused(["--resume", "--run-dir", run_dir, "--init-from", source[0], "--quiet"], run_dir,
-                   ["--init-from", "differs from the checkpoint's"], capsys)
+    resumed = preflight.prepare(
+        {"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=True
+    ).run
+    assert (resumed.init_from, resumed.init_parts) == (source[1], ",".join(PARTS))
+    assert_refused(
+        ["--resume", "--run-dir", run_dir, "--init-from", source[0], "--quiet"],
+        run_dir,
+        ["--init-from", "differs from the checkpoint's"],
+        capsys,
+    )
 
 
 def test_row_map_picks_source_rows_by_segment_name_in_the_targets_order():
@@ -194,8 +197,10 @@ def test_row_map_picks_source_rows_by_segment_name_in_the_targets_order():
 def test_apply_puts_the_planned_rows_in_the_planned_order(transferred, source_state):
     _, fresh, _ = transferred
     plan = transfer.Plan("", 1, ("encoder",), {}, np.array([3, 0]), SEEDS)  # qdot1, then q0
-    restored = {"params": {"encoder": source_state.params["encoder"]},
-                "proprio_norm": dataclasses.asdict(source_state.proprio_norm)}
+    restored = {
+        "params": {"encoder": source_state.params["encoder"]},
+        "proprio_norm": dataclasses.asdict(source_state.proprio_norm),
+    }
     new = transfer.apply(plan, fresh, restored)
     kernel = _leaves(source_state.params["encoder"])["params/proprio/kernel"]
     np.testing.assert_array_equal(_leaves(new.params["encoder"])["params/proprio/kernel"], kernel[:SEEDS][:, [3, 0]])
@@ -223,19 +228,22 @@ def test_init_from_names_a_run_and_optionally_a_checkpoint():
 def proprio_source(tmp_path_factory):
     """A checkpoint of a proprio_baseline run on planar_reach (its initial state: nothing trained)."""
     run_dir = str(tmp_path_factory.mktemp("proprio") / "run")
-    configs = config_lib.resolve({"env": "planar_reach", "agent": "proprio_baseline", "seeds": SEEDS, "buffer_episodes": 8,
-                                  "num_envs": 4})
-    init, _ = make_train(envs_mjx.make("planar_reach", render=False), config_lib.agent_spec("proprio_baseline"),
-                         configs[2], configs[1])
+    config = resolve(
+        {"env": "planar_reach", "agent": "proprio_baseline", "seeds": SEEDS, "buffer_episodes": 8, "num_envs": 4}
+    )
+    init, _ = make_train(envs_mjx.make("planar_reach", render=False), config)
     shapes = jax.eval_shape(jax.vmap(init), jax.ShapeDtypeStruct((SEEDS, 2), jnp.uint32))
     mngr = checkpoint.manager(os.path.join(run_dir, "checkpoints"))
-    checkpoint.save(mngr, 1, jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes), config_lib.to_dict(*configs), 0.0)
+    checkpoint.save(mngr, 1, jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), shapes), config.to_dict(), 0.0)
     mngr.close()
     return run_dir
 
 
 REFUSALS = {
-    "missing source": (lambda src, pro, tmp: ["--init-from", str(tmp / "none")], ["--init-from", "none", "does not exist"]),
+    "missing source": (
+        lambda src, pro, tmp: ["--init-from", str(tmp / "none")],
+        ["--init-from", "none", "does not exist"],
+    ),
     "missing checkpoint": (lambda src, pro, tmp: ["--init-from", f"{src}:7"], ["no checkpoint 7 in", "it has [1]"]),
     "part the source lacks": (
         lambda src, pro, tmp: ["--init-from", pro],
@@ -246,8 +254,10 @@ REFUSALS = {
         ["this run's agent multimodal_baseline has no forward"],
     ),
     "unknown part": (lambda src, pro, tmp: ["--init-from", src, "--init-parts", "encoder,decoder"], ["has no decoder"]),
-    "part list syntax": (lambda src, pro, tmp: ["--init-from", src, "--init-parts", "encoder,,inverse"],
-                         ["--init-parts encoder,,inverse", "comma-separated"]),
+    "part list syntax": (
+        lambda src, pro, tmp: ["--init-from", src, "--init-parts", "encoder,,inverse"],
+        ["--init-parts encoder,,inverse", "comma-separated"],
+    ),
     "leaf of another shape": (
         lambda src, pro, tmp: ["--init-from", src, "--latent-size", "6"],
         ["params/encoder/params/Dense_0/bias is (8,) float32 per seed in the source", "this run needs (6,) float32"],
@@ -260,8 +270,10 @@ REFUSALS = {
         lambda src, pro, tmp: ["--init-from", src, "--env", RENAMED],
         [f"this run's env {RENAMED} does not fit planar_reach's", "unknown proprio segment 'qvel'"],
     ),
-    "more seeds than the source": (lambda src, pro, tmp: ["--init-from", src, "--seeds", "4"],
-                                   ["--seeds 4", "has 3 seed(s)", "at least 4"]),
+    "more seeds than the source": (
+        lambda src, pro, tmp: ["--init-from", src, "--seeds", "4"],
+        ["--seeds 4", "has 3 seed(s)", "at least 4"],
+    ),
 }
 
 
@@ -269,7 +281,16 @@ REFUSALS = {
 def test_bad_transfer_is_refused_before_anything_is_written(case, source, proprio_source, tmp_path, capsys):
     extra, expected = REFUSALS[case]
     run_dir = tmp_path / "run"
-    argv = [*TINY, "--env", NO_QDOT, "--seeds", str(SEEDS), "--run-dir", str(run_dir), *extra(source[0], proprio_source, tmp_path)]
+    argv = [
+        *TINY,
+        "--env",
+        NO_QDOT,
+        "--seeds",
+        str(SEEDS),
+        "--run-dir",
+        str(run_dir),
+        *extra(source[0], proprio_source, tmp_path),
+    ]
     assert_refused(argv, run_dir, expected, capsys)
     assert not run_dir.exists()
 
@@ -279,91 +300,3 @@ def test_a_run_cannot_start_from_its_own_directory_it_would_delete(source, tmp_p
     shutil.copytree(source[0], run_dir)
     argv = [*TINY, "--env", "planar_reach", "--run-dir", str(run_dir), "--overwrite", "--init-from", str(run_dir)]
     assert_refused(argv, run_dir, ["is this run's own --run-dir"], capsys)
-
-
-# ----- experiments/transfer.py on hand-written run directories ------------------------------------------
-
-# per arm: per-epoch per-seed eval success (2 seeds); epochs of 100 env steps per seed, 10 s each
-FAKE = {
-    "source": [(0.1, 0.3), (0.5, 0.7)],
-    "transfer": [(0.2, 0.4), (0.4, 0.6), (0.6, 0.8)],
-    "scratch": [(0.0, 0.2), (0.1, 0.1), (0.3, 0.5)],
-}
-EXPERIMENT = ["--seeds", "2", "--epochs", "3", "--source-epochs", "2", "--last-n", "2", "--quiet"]
-
-
-def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_nicol, fake_run, capsys):
-    out = tmp_path / "out"
-    for name, rows in FAKE.items():
-        fake_run(str(out / name), "nicol_slide" if name == "source" else "nicol_lift_reduced", rows, len(rows))
-    assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 0
-    assert no_nicol == []
-    printed = capsys.readouterr().out
-    assert "source: nicol_slide multimodal_bidal, 2 seed(s), exploration starts 0; 2 epochs × 128,000 = 256,000" in printed
-    assert f"transfer: nicol_lift_reduced multimodal_bidal, 2 seed(s), exploration starts 0, parameters from {out}/source" in printed
-    assert "3 epochs × 128,000 = 384,000 env steps per seed" in printed and "[done]" in printed
-    table = (out / "table.md").read_text()
-    # transfer: means 0.3, 0.5, 0.7 -> 0.3 at epoch 1 (100 steps, 10 s), 0.5 at epoch 2; AUC 0.5; last 2: seeds 0.5, 0.7
-    assert "| transfer | 2 | 3 | 300 | 100 (epoch 1) | 10 s | 200 (epoch 2) | 20 s | 0.500 | 0.600 ± 0.100 |" in table
-    # scratch: means 0.1, 0.1, 0.4 -> 0.3 at epoch 3, 0.5 never; AUC 0.2; last 2: seeds 0.2, 0.3
-    assert "| scratch | 2 | 3 | 300 | 300 (epoch 3) | 30 s | not reached | not reached | 0.200 | 0.250 ± 0.050 |" in table
-    assert "Source: nicol_slide multimodal_bidal" in table and "2 epochs, 200 env steps per seed, 20 s" in table
-    with open(out / "success.png", "rb") as f:
-        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
-    with open(out / "success.csv", newline="") as f:
-        assert {r["label"] for r in csv.DictReader(f)} == {"transfer", "scratch"}
-
-
-def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_path, no_nicol, fake_run, capsys):
-    out = tmp_path / "out"
-    fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)  # done
-    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"][:1], 1)  # interrupted at epoch 1 of 3
-    os.makedirs(out / "scratch")
-    (out / "scratch" / "metrics.csv").write_text("epoch\n")  # stopped before its first checkpoint
-    assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 0
-    assert no_nicol == [
-        ("prepare", str(out / "transfer"), True, False), ("train", str(out / "transfer"), True, True),
-        ("prepare", str(out / "scratch"), False, True), ("train", str(out / "scratch"), False, False),
-    ]
-    assert "[resume, checkpoint at epoch 1]" in capsys.readouterr().out
-    assert "| transfer | 2 | 1 | 100 |" in (out / "table.md").read_text()  # from whatever is there
-
-
-def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol, fake_run):
-    out = tmp_path / "out"
-    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "scratch"]) == 0
-    assert no_nicol == [("prepare", str(out / "scratch"), False, True), ("train", str(out / "scratch"), False, False)]
-    shutil.rmtree(out / "scratch" / "checkpoints", ignore_errors=True)
-    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], 1)
-    shutil.rmtree(out / "transfer" / "checkpoints")  # results only: checkpoints are not needed
-    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
-    assert len(no_nicol) == 2 and "| transfer | 2 | 3 | 300 |" in (out / "table.md").read_text()
-
-
-def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
-    args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
-    arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
-    assert [a.name for a in arms] == ["source", "transfer", "scratch"]
-    source, moved, scratch = (a.given for a in arms)
-    assert (source["env"], source["epochs"], source["num_envs"]) == ("nicol_slide", 100, 64)
-    assert "exploration_starts" not in source  # nicol_slide has no held start
-    assert {k: v for k, v in moved.items() if k not in ("init_from", "init_parts", "run_dir")} == {
-        k: v for k, v in scratch.items() if k != "run_dir"}
-    assert (scratch["exploration_starts"], scratch["seeds"], moved["init_from"]) == (0.5, 5, "out/source")
-    args, rest = experiment.build_parser().parse_known_args(["--source", "runs/slide", "--source-checkpoint", "best"])
-    arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
-    assert [a.name for a in arms] == ["transfer", "scratch"] and arms[0].given["init_from"] == "runs/slide:best"
-    assert arms[1].given["exploration_starts"] == 0.0
-
-
-@pytest.mark.parametrize("extra, expected", [
-    (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
-    (["--exploration-starts", "0.5"], "error: --exploration-starts: not passed through to the runs (use --held-starts)"),
-    (["--num-envs", "0"], "error: --num-envs 0: must be a positive integer"),
-    (["--arms", "source,lift"], "error: --arms source,lift: unknown arm 'lift'; allowed: source, transfer, scratch"),
-])
-def test_bad_experiment_options_are_refused_before_anything_runs(extra, expected, tmp_path, no_nicol, capsys):
-    out = tmp_path / "out"
-    assert experiment.main([*EXPERIMENT, "--out", str(out), *extra]) == 2
-    assert capsys.readouterr().err.strip() == expected
-    assert no_nicol == [] and not out.exists()

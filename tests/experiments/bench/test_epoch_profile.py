@@ -1,8 +1,8 @@
-"""experiments.bench_profile: the trace summary (a synthetic trace) and its option checks."""
+"""experiments.bench.epoch_profile: the trace summary (a synthetic trace) and its option checks."""
 
 import pytest
 
-from experiments import bench_profile
+from experiments.bench import epoch_profile as bench_profile
 
 
 def test_summarise_groups_by_stream_counts_events_and_ranks_operations():
@@ -16,7 +16,10 @@ def test_summarise_groups_by_stream_counts_events_and_ranks_operations():
         {"ph": "i", "pid": 1, "tid": 7, "name": "instant"},  # not a complete event
     ]
     rows = bench_profile.summarise(events, top=1)
-    assert [(r["process"], r["thread"], r["events"]) for r in rows] == [("/device:GPU:0", "Stream #14(Compute)", 3), ("2", "1", 1)]
+    assert [(r["process"], r["thread"], r["events"]) for r in rows] == [
+        ("/device:GPU:0", "Stream #14(Compute)", 3),
+        ("2", "1", 1),
+    ]
     assert rows[0]["seconds"] == pytest.approx(12e-6)
     assert rows[0]["top"] == [("fusion_a", pytest.approx(7e-6))]
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from experiments import bench_success as bs
+from experiments.bench import success as bs
 
 LOG = ("compiling the training program (planar_reach, proprio_baseline, 3 seed(s) on 1 device(s)) ...\n"
        "compiled in 12.5 s\n")

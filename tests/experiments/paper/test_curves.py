@@ -9,7 +9,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax import config as config_lib
-from experiments import curves, grid
+from experiments.paper import curves, grid
 
 TASKS = ("planar_reach", "ur5_reach", "nicol_slide", "nicol_lift")
 SMALL = ["--tasks", "planar_reach", "--agents", "proprio_baseline,visual_baseline,multimodal_baseline",
@@ -35,10 +35,10 @@ def test_the_grid_is_the_papers_tasks_and_agents():
 def test_every_agent_of_a_task_gets_the_same_epochs(argv, expected):
     arms = _arms([*argv, "--num-envs", "64"])
     for task, epochs in expected.items():
-        runs = [config_lib.resolve(a.given) for a in arms if a.given["env"] == task]
+        configs = [a.config for a in arms if a.given["env"] == task]
         # the resolved configs: no image-agent preset overrides the task's budget
-        assert {run.epochs for run, _, _ in runs} == {epochs}
-        assert {train.num_envs for _, train, _ in runs} == {64}  # learner options pass to every run
+        assert {config.run.epochs for config in configs} == {epochs}
+        assert {config.train.num_envs for config in configs} == {64}  # learner options pass to every run
 
 
 def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, no_nicol, capsys):
@@ -47,14 +47,23 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
     printed = capsys.readouterr().out
     assert not out.exists() and no_nicol == []
     lines = printed.splitlines()
-    assert lines[0] == "plan: 20 runs" and len([line for line in lines if line.endswith(" s") and "[new]" in line]) == 20
+    assert (
+        lines[0] == "plan: 20 runs" and len([line for line in lines if line.endswith(" s") and "[new]" in line]) == 20
+    )
     for task in TASKS:
         for agent in config_lib.AGENTS:
-            assert f"{task} {agent}, 5 seed(s), exploration starts 0; " in printed and f"{out}/{task}/{agent} [new]" in printed
-    assert (f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 128,000 = 12,800,000 env steps "
-            f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 680 s") in lines
-    assert (f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
-            f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s") in lines
+            assert (
+                f"{task} {agent}, 5 seed(s), exploration starts 0; " in printed
+                and f"{out}/{task}/{agent} [new]" in printed
+            )
+    assert (
+        f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 128,000 = 12,800,000 env steps "
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 680 s"
+    ) in lines
+    assert (
+        f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
+        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
+    ) in lines
     # 5 × 300 + 5 × 240 + 2 × (4 × 680 + 290)
     assert "estimated time: 8,720 s (2.4 h) on one H200 running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
@@ -62,8 +71,9 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
 
 def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(tmp_path, no_nicol, fake_run, capsys):
     out = tmp_path / "out"
-    done, interrupted, unstarted = (str(out / "planar_reach" / a) for a in
-                                    ("proprio_baseline", "visual_baseline", "multimodal_baseline"))
+    done, interrupted, unstarted = (
+        str(out / "planar_reach" / a) for a in ("proprio_baseline", "visual_baseline", "multimodal_baseline")
+    )
     # finished, its checkpoints not kept (as in results/): its metrics hold all its epochs
     fake_run(done, "planar_reach", [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None, agent="proprio_baseline")
     fake_run(interrupted, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline")
@@ -78,24 +88,38 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     assert "[new]; estimated 78 s" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 0
     assert no_nicol == [
-        ("prepare", interrupted, True, False), ("train", interrupted, True, False),
-        ("prepare", unstarted, False, True), ("train", unstarted, False, False),
+        ("prepare", interrupted, True, False),
+        ("train", interrupted, True, False),
+        ("prepare", unstarted, False, True),
+        ("train", unstarted, False, False),
     ]
     assert f"planar_reach/proprio_baseline: done ({done})" in capsys.readouterr().out
     assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
 
 
-@pytest.mark.parametrize("extra, expected", [
-    (["--tasks", "foo"], "error: --tasks foo: unknown task 'foo'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift"),
-    (["--tasks", "nicol_slide,nicol_lift_reduced"], "error: --tasks nicol_slide,nicol_lift_reduced: unknown task "
-     "'nicol_lift_reduced'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift"),
-    (["--tasks", ","], "error: --tasks ',': name at least one of planar_reach, ur5_reach, nicol_slide, nicol_lift"),
-    (["--agents", "proprio_baseline,bidal"], "error: --agents proprio_baseline,bidal: unknown agent 'bidal'; allowed: "
-     "proprio_baseline, visual_baseline, multimodal_baseline, visual_bidal, multimodal_bidal"),
-    # the pass-through options are experiments/grid.py's, tested in full with experiments.transfer
-    (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
-    (["--last-n", "0"], "error: --last-n 0: must be a positive integer"),
-])
+@pytest.mark.parametrize(
+    "extra, expected",
+    [
+        (
+            ["--tasks", "foo"],
+            "error: --tasks foo: unknown task 'foo'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift",
+        ),
+        (
+            ["--tasks", "nicol_slide,nicol_lift_reduced"],
+            "error: --tasks nicol_slide,nicol_lift_reduced: unknown task "
+            "'nicol_lift_reduced'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift",
+        ),
+        (["--tasks", ","], "error: --tasks ',': name at least one of planar_reach, ur5_reach, nicol_slide, nicol_lift"),
+        (
+            ["--agents", "proprio_baseline,bidal"],
+            "error: --agents proprio_baseline,bidal: unknown agent 'bidal'; allowed: "
+            "proprio_baseline, visual_baseline, multimodal_baseline, visual_bidal, multimodal_bidal",
+        ),
+        # the pass-through options are experiments/grid.py's, tested in full with experiments.transfer
+        (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
+        (["--last-n", "0"], "error: --last-n 0: must be a positive integer"),
+    ],
+)
 def test_bad_options_are_refused_before_anything_is_written(extra, expected, tmp_path, no_nicol, capsys):
     out = tmp_path / "out"
     assert curves.main(["--out", str(out), *extra]) == 2
@@ -118,19 +142,40 @@ def test_held_starts_changes_only_nicol_lift_and_writes_elsewhere(tmp_path, monk
     assert not (tmp_path / "results").exists()
 
 
-REPORT = ["--tasks", "planar_reach,ur5_reach", "--agents", "proprio_baseline,multimodal_bidal", "--seeds", "2",
-          "--epochs", "3", "--last-n", "2", "--report"]
+REPORT = [
+    "--tasks",
+    "planar_reach,ur5_reach",
+    "--agents",
+    "proprio_baseline,multimodal_bidal",
+    "--seeds",
+    "2",
+    "--epochs",
+    "3",
+    "--last-n",
+    "2",
+    "--report",
+]
 
 
 def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(tmp_path, no_nicol, fake_run, capsys):
     out = tmp_path / "out"
     assert curves.main([*REPORT, "--out", str(out)]) == 0
     assert "no epochs yet: nothing to plot" in capsys.readouterr().out and not out.exists()
-    fake_run(str(out / "planar_reach" / "proprio_baseline"), "planar_reach", [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None,
-             agent="proprio_baseline")
+    fake_run(
+        str(out / "planar_reach" / "proprio_baseline"),
+        "planar_reach",
+        [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)],
+        None,
+        agent="proprio_baseline",
+    )
     fake_run(str(out / "planar_reach" / "multimodal_bidal"), "planar_reach", [(0.2, 0.2), (0.4, 0.6)], None)
-    fake_run(str(out / "ur5_reach" / "proprio_baseline"), "ur5_reach", [(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)], None,
-             agent="proprio_baseline")
+    fake_run(
+        str(out / "ur5_reach" / "proprio_baseline"),
+        "ur5_reach",
+        [(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)],
+        None,
+        agent="proprio_baseline",
+    )
     assert curves.main([*REPORT, "--out", str(out)]) == 0
     assert no_nicol == []
     table = (out / "table.md").read_text()
@@ -145,7 +190,10 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
     with open(out / "curves.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert {(r["panel"], r["label"]) for r in rows} == {
-        ("planar_reach", "proprio_baseline"), ("planar_reach", "multimodal_bidal"), ("ur5_reach", "proprio_baseline")}
+        ("planar_reach", "proprio_baseline"),
+        ("planar_reach", "multimodal_bidal"),
+        ("ur5_reach", "proprio_baseline"),
+    }
     first = rows[0]  # planar_reach proprio_baseline, epoch 1: seeds 0.1 and 0.3 after 100 env steps per seed
     assert (float(first["x"]), float(first["mean"]), float(first["std"])) == pytest.approx((100, 0.2, 0.1))
 

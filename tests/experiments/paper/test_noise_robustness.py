@@ -5,8 +5,8 @@ import os
 
 import numpy as np
 
-from bidal_jax import acting
-from experiments import noise
+from bidal_jax.run.policy import load_policy
+from experiments.paper import noise_robustness as noise
 
 TINY = ["--env", "planar_reach", "--noise-segments", "q", "--agents", "proprio_baseline", "--runs", "2",
         "--epochs", "2", "--num-envs", "4", "--cycles-per-epoch", "1", "--updates-per-cycle", "2",
@@ -21,7 +21,7 @@ def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, c
     assert text.count("(last 2 of 2 epochs)") == 3  # a window longer than the run uses what there is, and says so
     assert os.path.isfile(os.path.join(out, "curves.png")) and os.path.isfile(os.path.join(out, "curves.csv"))
     run_dir = os.path.join(out, "proprio_baseline")
-    trained = acting.load_policy(run_dir)
+    trained = load_policy(run_dir)
     assert trained.seeds == 6 and trained.run.seeds == 6
     assert trained.train.noise_segments == "q"
     np.testing.assert_array_equal(noise.run_kappas(2), np.float32([0.05, 0.05, 0.10, 0.10, 0.15, 0.15]))

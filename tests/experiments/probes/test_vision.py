@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from experiments import vision_probe
+from experiments.probes import vision as vision_probe
 
 
 def test_located_is_the_share_within_epsilon():
