@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bidal_jax import losses, normalizer
+from bidal_jax import losses
 from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
 from bidal_jax.networks import make_networks
 
@@ -131,42 +131,3 @@ def test_actor_loss_has_the_action_penalty_and_leaves_the_encoder_alone():
     q = nets.critic(params["critic"], batch["phi"], a, batch["goal"])
     np.testing.assert_allclose(float(loss), float(-q.mean() + 2.0 * jnp.mean(a**2)), rtol=1e-6)
     assert "encoder" not in params
-
-
-@pytest.mark.parametrize("agent", sorted(AGENTS))
-def test_every_agent_builds_the_networks_it_needs(agent):
-    spec = AGENTS[agent]
-    params = make_networks(spec, NetworkConfig(conv_channels=4), 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
-    assert ("encoder" in params) == spec.uses_image
-    assert ("forward" in params) == spec.bidal and ("inverse" in params) == spec.bidal
-
-
-def test_normalizer_by_hand():
-    state = normalizer.update(normalizer.init(2), jnp.array([[1.0, 10.0], [3.0, 10.0]]))
-    np.testing.assert_allclose(state.mean, [2.0, 10.0])
-    np.testing.assert_allclose(state.std, [1.0, normalizer.MIN_STD])
-    np.testing.assert_allclose(normalizer.normalize(state, jnp.array([4.0, 10.0]), 5.0), [2.0, 0.0])
-
-
-@pytest.mark.parametrize("size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME")])
-def test_patch_conv_equals_flax_conv(size, stride, padding):
-    import flax.linen as nn
-
-    from bidal_jax.networks import PatchConv
-
-    x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
-    reference = nn.Conv(5, (3, 3), strides=(stride, stride), padding=padding)
-    params = reference.init(jax.random.PRNGKey(1), x)
-    ours = PatchConv(5, stride=stride, padding=padding).apply(params, x)
-    np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
-
-
-@pytest.mark.parametrize(
-    "strides, features", [("3,2,2,2", 2 * 2 * 4), ("2,2,1,1", 10 * 10 * 4), ("2,2,2,2", 3 * 3 * 4)]
-)
-def test_conv_strides_set_the_vision_branch_feature_map(strides, features):
-    """--conv-strides: the first layer unpadded, the others 'same'-padded, so the dense layer that
-    ends the vision branch sees H×W×C features (42 → 14 → 7 → 4 → 2 for 3,2,2,2)."""
-    config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides)
-    params = make_networks(AGENTS["visual_bidal"], config, 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
-    assert params["encoder"]["params"]["VisionBranch_0"]["Dense_0"]["kernel"].shape == (features, 64)
