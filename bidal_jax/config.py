@@ -191,7 +191,7 @@ class RunConfig:
     env_shards: int = doc(
         1,
         "at most this many devices split each seed's envs (of the devices the seeds leave free; gradients "
-        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (README: Several devices)",
+        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (docs/usage.md, "Several devices")",
         POSITIVE_INT,
     )
     run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>", text("a path"))
@@ -220,7 +220,7 @@ def fields_help(cls: type) -> dict[str, str]:
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 40}},
     "ur5_reach": {"run": {"epochs": 15}},
-    # the NICOL tasks are sized for one GPU (README, "Results"): many parallel envs, big batches
+    # the NICOL tasks are sized for one GPU (docs/results.md): many parallel envs, big batches
     **{
         name: {
             "run": {"epochs": 100},

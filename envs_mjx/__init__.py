@@ -1,4 +1,4 @@
-"""MJX environments of the paper's tasks, behind one registry (DESIGN.md).
+"""MJX environments of the paper's tasks, behind one registry (docs/design.md).
 
     env = envs_mjx.make("planar_reach", render=False)
     state = jax.jit(env.reset)(key)

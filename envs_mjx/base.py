@@ -1,4 +1,4 @@
-"""The functional environment API shared by every task (DESIGN.md, "The environment API").
+"""The functional environment API shared by every task (docs/design.md, "The environment API").
 
 An `Env` is a set of pure functions over a `State` pytree: `reset(key) -> State` and
 `step(state, action) -> State`, both jit- and vmap-able, plus static facts fixed at
@@ -30,7 +30,7 @@ from envs_mjx.camera import Camera
 # the top-level assets/ folder, installed as the package `envs_mjx.assets` (pyproject.toml), so
 # that editable installs, wheels and `pip install .` all find the models from any directory
 ASSETS_DIR = importlib.resources.files("envs_mjx.assets")
-CONTROL_PERIOD = 0.04  # seconds, 25 Hz (TASKS.md)
+CONTROL_PERIOD = 0.04  # seconds, 25 Hz (docs/tasks.md)
 IMAGE_SHAPE = (42, 42, 1)  # grayscale, paper Table I
 
 
@@ -181,7 +181,7 @@ class Env(abc.ABC):
         return sparse_reward(achieved_goal, desired_goal, self.epsilon)
 
     def reset(self, key: jax.Array) -> State:
-        """The task's initial state and goal (TASKS.md); evaluation always starts here."""
+        """The task's initial state and goal (docs/tasks.md); evaluation always starts here."""
         return self._start(*self._reset_data(key))
 
     def exploration_reset(self, key: jax.Array) -> State:

@@ -1,4 +1,4 @@
-"""planar_reach: a two-link planar arm reaches a target point (paper Sec. III-D.1, TASKS.md).
+"""planar_reach: a two-link planar arm reaches a target point (paper Sec. III-D.1, docs/tasks.md).
 
 Proprio is (q, qdot), D = 4; the action (A = 2) moves each joint's position target by at
 most 0.2 rad from the current joint angle; the goal (G = 2) is the end-effector's xy,

@@ -1,4 +1,4 @@
-"""ur5_reach: the first three joints of a UR5 reach goal joint angles (paper Sec. III-D.2, TASKS.md).
+"""ur5_reach: the first three joints of a UR5 reach goal joint angles (paper Sec. III-D.2, docs/tasks.md).
 
 Proprio is (q, qdot), D = 6; the action (A = 3) moves each joint's position target by at
 most 0.1 rad from the current joint angle; the goal (G = 3) is a configuration of shoulder

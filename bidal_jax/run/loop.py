@@ -103,7 +103,7 @@ def train(
     restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
     SIGINT/SIGTERM.
 
-    With several processes (`bidal_jax.multihost`), every process calls it: the seeds span every
+    With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
     process's devices, the checkpoints are written by all, config.json, the metrics and the progress
     bar by process 0 only; a signal to any process stops all after the same epoch.
     """

@@ -77,7 +77,7 @@ def test_only_fixed_cameras_are_accepted():
 @pytest.mark.parametrize("name", ["planar_reach", "nicol_lift"])
 def test_render_equals_mjx_ray_cast_per_pixel(name):
     """The fused renderer sees what `mjx.ray` sees, pixel by pixel, over random poses (on the
-    CPU exactly; a GPU rounds some ray-grazing silhouette pixels differently, README)."""
+    CPU exactly; a GPU rounds some ray-grazing silhouette pixels differently, docs/results.md)."""
     env = envs_mjx.make(name)
     cam, model = env.camera, env.mjx_model
     hinges = env.mj_model.jnt_qposadr[env.mj_model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE]

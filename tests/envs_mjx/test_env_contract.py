@@ -1,4 +1,4 @@
-"""Env contract tests (DESIGN.md tier 2), shared by every registered environment."""
+"""Env contract tests (docs/design.md, tier 2), shared by every registered environment."""
 
 import functools
 

@@ -1,4 +1,4 @@
-"""nicol_slide / nicol_lift tests (TASKS.md "nicol_slide and nicol_lift"): proprio layout,
+"""nicol_slide / nicol_lift tests (docs/tasks.md "nicol_slide and nicol_lift"): proprio layout,
 reduced variant, reset distributions, Cartesian hand tracking, joint limits and the
 scripted controllers that prove both tasks solvable in this physics.
 

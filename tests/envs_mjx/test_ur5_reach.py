@@ -1,4 +1,4 @@
-"""ur5_reach tests (TASKS.md ur5_reach): model, kinematics, sampling, control and camera.
+"""ur5_reach tests (docs/tasks.md ur5_reach): model, kinematics, sampling, control and camera.
 
 The shared API tests (shapes, NaN, determinism, MJX vs mj_step) live in test_env_contract.py.
 """

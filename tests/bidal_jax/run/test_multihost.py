@@ -1,4 +1,4 @@
-"""Several processes train one run (bidal_jax.multihost): when the environment asks for
+"""Several processes train one run (bidal_jax.run.multihost): when the environment asks for
 `jax.distributed`, how the seeds spread over every process's devices, and two local processes
 of 2 CPU devices each that write one run equal to a single-process run, whose checkpoint resumes
 in one process, and the other way round."""

@@ -1,4 +1,4 @@
-"""The time-to-threshold benchmark (experiments/bench_success.py) without training: its figures
+"""The time-to-threshold benchmark (experiments/bench/success.py) without training: its figures
 from hand-written run directories and stderr (`fake_run` of conftest.py), the table, refusals,
 the order of the runs and the ref's worktree with a fake `launch`, and the launcher on a real
 command that stops before compiling."""

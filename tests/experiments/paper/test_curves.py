@@ -1,4 +1,4 @@
-"""The learning-curve grid (experiments/curves.py) on hand-written run directories, without
+"""The learning-curve grid (experiments/paper/curves.py) on hand-written run directories, without
 training (`no_nicol` and `fake_run` of conftest.py): the plan and its estimate, one budget per
 task, resuming, refusals, the held-starts variant and the report."""
 
@@ -115,7 +115,7 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
             "error: --agents proprio_baseline,bidal: unknown agent 'bidal'; allowed: "
             "proprio_baseline, visual_baseline, multimodal_baseline, visual_bidal, multimodal_bidal",
         ),
-        # the pass-through options are experiments/grid.py's, tested in full with experiments.transfer
+        # the pass-through options are experiments/paper/grid.py's (tested in full with transfer_learning)
         (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
         (["--last-n", "0"], "error: --last-n 0: must be a positive integer"),
     ],

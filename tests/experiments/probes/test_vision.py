@@ -1,4 +1,4 @@
-"""The vision probe (experiments/vision_probe.py): its success test by hand, bad input, a tiny run."""
+"""The vision probe (experiments/probes/vision.py): its success test by hand, bad input, a tiny run."""
 
 import numpy as np
 import pytest
