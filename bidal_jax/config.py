@@ -191,7 +191,7 @@ class RunConfig:
     env_shards: int = doc(
         1,
         "at most this many devices split each seed's envs (of the devices the seeds leave free; gradients "
-        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (docs/usage.md, "Several devices")",
+        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (docs/usage.md: Several devices)",
         POSITIVE_INT,
     )
     run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>", text("a path"))
