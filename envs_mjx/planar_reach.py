@@ -36,12 +36,7 @@ class PlanarReach(JointReachEnv):
     def __init__(self, render: bool = True):
         mj_model = load_model("planar_reach.xml")
         super().__init__(
-            mj_model,
-            max_delta=MAX_DELTA,
-            goal_size=2,
-            camera_name="top",
-            episode_length=50,
-            epsilon=0.02,
+            mj_model, max_delta=MAX_DELTA, goal_size=2, camera_name="top", episode_length=50, epsilon=0.02,
             render=render,
         )
         self._ee_site = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, "ee")

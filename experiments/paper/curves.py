@@ -75,13 +75,7 @@ SECONDS = {"planar_reach": _REACH, "ur5_reach": _REACH, "nicol_slide": _NICOL, "
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=PROG,
-        description=__doc__.split("\n\n")[0],
-        allow_abbrev=False,
-        epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
-        "and --checkpoint-every are passed to every run.",
-    )
+    parser = grid.experiment_parser(PROG, __doc__, "every run")
     parser.add_argument(
         "--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})"
     )

@@ -53,6 +53,16 @@ class Arm:
         return resolve(self.given)
 
 
+def experiment_parser(prog: str, doc: str, runs: str) -> argparse.ArgumentParser:
+    """The parser of an experiment `prog` (described by its module docstring `doc`) whose learner and
+    network options pass through to `runs` (`pass_through`)."""
+    return argparse.ArgumentParser(
+        prog=prog, description=doc.split("\n\n")[0], allow_abbrev=False,
+        epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
+        f"and --checkpoint-every are passed to {runs}.",
+    )
+
+
 def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
     """The config fields of the options an experiment `prog` does not know itself, parsed as
     experiments.run parses them; ConfigError for one that is not passed through."""

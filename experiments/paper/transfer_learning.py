@@ -61,13 +61,7 @@ ARMS = ("source", "transfer", "scratch")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=PROG,
-        description=__doc__.split("\n\n")[0],
-        allow_abbrev=False,
-        epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
-        "and --checkpoint-every are passed to all three runs.",
-    )
+    parser = grid.experiment_parser(PROG, __doc__, "all three runs")
     parser.add_argument(
         "--out",
         default=None,
