@@ -181,11 +181,7 @@ def rollout(
 
 
 def evaluate(
-    env,
-    policy: Policy,
-    key: jax.Array,
-    n_episodes: int | None = None,
-    states: Any = None,
+    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None,
     observe: Observer | None = None,
 ) -> jax.Array:
     """Success (paper Eq. 6 at the episode's last step, on the true state) of `policy` in each of
