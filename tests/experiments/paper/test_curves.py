@@ -161,21 +161,13 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
     out = tmp_path / "out"
     assert curves.main([*REPORT, "--out", str(out)]) == 0
     assert "no epochs yet: nothing to plot" in capsys.readouterr().out and not out.exists()
-    fake_run(
-        str(out / "planar_reach" / "proprio_baseline"),
-        "planar_reach",
-        [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)],
-        None,
-        agent="proprio_baseline",
-    )
-    fake_run(str(out / "planar_reach" / "multimodal_bidal"), "planar_reach", [(0.2, 0.2), (0.4, 0.6)], None)
-    fake_run(
-        str(out / "ur5_reach" / "proprio_baseline"),
-        "ur5_reach",
-        [(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)],
-        None,
-        agent="proprio_baseline",
-    )
+    written = {
+        ("planar_reach", "proprio_baseline"): [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)],
+        ("planar_reach", "multimodal_bidal"): [(0.2, 0.2), (0.4, 0.6)],
+        ("ur5_reach", "proprio_baseline"): [(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)],
+    }
+    for (task, agent), rows in written.items():
+        fake_run(str(out / task / agent), task, rows, None, agent=agent)
     assert curves.main([*REPORT, "--out", str(out)]) == 0
     assert no_nicol == []
     table = (out / "table.md").read_text()
