@@ -10,8 +10,9 @@ A manager keeps the latest two checkpoints and the best one by evaluation succes
 Crash safety: Orbax writes each step to `<epoch>.orbax-checkpoint-tmp/` and renames it
 when complete, so a process killed at any moment (even mid-save) leaves the previous
 checkpoint intact; the step listing ignores unfinished temporary directories and a
-writing `manager` deletes them. A save that fails (e.g. the disk is full) deletes its own at once.
-Saves are synchronous (the loop waits for each anyway): a failure is raised by `save` itself. Damage is detected, never restored silently: Orbax and
+writing `manager` deletes them. A save that fails (e.g. the disk is full) deletes its own at once;
+saves are synchronous (the loop waits for each anyway): a failure is raised by `save` itself.
+Damage is detected, never restored silently: Orbax and
 TensorStore reject truncated or missing files, and the digest catches flipped bytes,
 which they would load without complaint. Every failure is a `CheckpointError` whose
 message says which checkpoint and what is wrong with it.

@@ -13,9 +13,9 @@ failures reported in one line.
 - `disk_errors(what, last_good)`: a block whose disk failure (no space, quota, read-only file
   system, I/O error; an `OSError`, or a TensorStore error naming the OS error code, as Orbax
   raises it) becomes one `DiskError` line, "no space left on device while WHAT; LAST_GOOD".
-  Meanwhile the reports of that failure by Orbax's background threads (absl log records with
-  tracebacks, exceptions of callbacks into a closed event loop) are dropped; after a disk error
-  they stay dropped, since the process is about to end on it.
+  Meanwhile the reports of that failure by Orbax's background threads and pending writes (absl
+  and asyncio log records with tracebacks, exceptions of callbacks into a closed event loop) are
+  dropped; after a disk error they stay dropped, since the process is about to end on it.
 """
 
 from __future__ import annotations
@@ -48,6 +48,8 @@ DISK_ERRNOS = {
 OS_ERROR_CODE = re.compile(r"os_error_code='?(\d+)")
 # free space a checkpoint needs beyond its arrays' bytes: a share of them, plus the small items
 MARGIN_SHARE, MARGIN_BYTES = 0.05, 2**20
+# the loggers through which Orbax's background threads and pending writes report a failed save
+BACKGROUND_LOGGERS = ("absl", "asyncio")
 # this process's locks: the run directory's real path -> the locked file's descriptor
 _held: dict[str, int] = {}
 
@@ -79,9 +81,8 @@ def _lock(path: str, run_dir: str) -> int:
         except BlockingIOError:
             holder = os.read(fd, 256).decode(errors="replace").strip() or "which has not written its host and PID yet"
             os.close(fd)
-            raise RunDirInUse(
-                f"run directory {run_dir} is in use by another run ({holder}); wait until it ends or use another directory"
-            ) from None
+            raise RunDirInUse(f"run directory {run_dir} is in use by another run ({holder}); "
+                              "wait until it ends or use another directory") from None
         if _same_file(fd, path):
             return fd
         os.close(fd)  # its holder deleted it between our open and lock: lock the file now at the path
@@ -128,7 +129,9 @@ def with_margin(nbytes: int) -> int:
 
 
 def megabytes(nbytes: int) -> str:
-    return f"{nbytes / 2**20:,.0f} MB" if nbytes >= 2**20 else f"{nbytes / 2**20:.1f} MB"
+    """Bytes in MB (2^20 bytes), with a decimal below 100."""
+    mb = nbytes / 2**20
+    return f"{mb:,.0f} MB" if mb >= 100 else f"{mb:.1f} MB"
 
 
 def check_space(directory: str, nbytes: int) -> None:
@@ -191,8 +194,10 @@ def disk_errors(what: str, last_good: str) -> Iterator[None]:
     """Run the block; a disk failure inside becomes DiskError("<reason> while <what>; <last_good>"),
     any other exception passes. Background reports of disk failures are dropped meanwhile, and for
     good after one."""
-    absl, dropping, hook = logging.getLogger("absl"), _DropDiskFailures(), sys.unraisablehook
-    absl.addFilter(dropping)
+    loggers, hook = [logging.getLogger(name) for name in BACKGROUND_LOGGERS], sys.unraisablehook
+    dropping = _DropDiskFailures()
+    for logger in loggers:
+        logger.addFilter(dropping)
     sys.unraisablehook = _quiet_unraisable(hook)
     code = None
     try:
@@ -204,5 +209,6 @@ def disk_errors(what: str, last_good: str) -> Iterator[None]:
         raise DiskError(f"{DISK_ERRNOS[code]} while {what}; {last_good}") from None
     finally:
         if code is None:
-            absl.removeFilter(dropping)
+            for logger in loggers:
+                logger.removeFilter(dropping)
             sys.unraisablehook = hook
