@@ -186,6 +186,8 @@ def prepare(
     if resume and not given.get("run_dir"):
         raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
     env_names = tuple(env_names)
+    if given.get("run_dir"):
+        rundir.check_not_in_use(given["run_dir"])
 
     def check(configs: Configs) -> None:
         validate.check(*configs, env_names=env_names)

@@ -72,6 +72,28 @@ def _same_file(fd: int, path: str) -> bool:
         return False
 
 
+def _in_use(fd: int, run_dir: str) -> RunDirInUse:
+    """The error naming the holder of the lock file `fd` (closed here)."""
+    holder = os.read(fd, 256).decode(errors="replace").strip() or "which has not written its host and PID yet"
+    os.close(fd)
+    return RunDirInUse(f"run directory {run_dir} is in use by another run ({holder}); "
+                       "wait until it ends or use another directory")
+
+
+def check_not_in_use(run_dir: str) -> None:
+    """RunDirInUse naming the holder if another process holds `run_dir`'s lock; reads only (a run
+    refused for being in use learns it before any other check of the directory)."""
+    try:
+        fd = os.open(os.path.join(run_dir, LOCK_FILE), os.O_RDONLY)
+    except OSError:
+        return  # no lock file: nobody holds it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise _in_use(fd, run_dir) from None
+    os.close(fd)  # unlocks
+
+
 def _lock(path: str, run_dir: str) -> int:
     """The descriptor of `path`, created if need be and exclusively locked; RunDirInUse if held."""
     while True:
@@ -79,10 +101,7 @@ def _lock(path: str, run_dir: str) -> int:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            holder = os.read(fd, 256).decode(errors="replace").strip() or "which has not written its host and PID yet"
-            os.close(fd)
-            raise RunDirInUse(f"run directory {run_dir} is in use by another run ({holder}); "
-                              "wait until it ends or use another directory") from None
+            raise _in_use(fd, run_dir) from None
         if _same_file(fd, path):
             return fd
         os.close(fd)  # its holder deleted it between our open and lock: lock the file now at the path
