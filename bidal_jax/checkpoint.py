@@ -27,6 +27,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
+import threading
 import zlib
 from typing import Any
 
@@ -44,6 +45,8 @@ class CheckpointError(Exception):
 
 BEST_METRIC = "eval_success"
 ARRAY_ITEMS = ("state", "buffer")
+# seconds to wait for each of the threads of a failed save before deleting what it wrote
+SAVE_THREADS_TIMEOUT = 30.0
 
 
 def _handlers(partial: bool = False) -> dict[str, ocp.CheckpointHandler]:
@@ -101,6 +104,7 @@ def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_
     `eval_success` for the best checkpoint; wait until it is on disk. `env_shards`: how many
     shards kept the buffer (its layout, `replay.relayout`), saved beside the digest."""
     fields, buffer = _split(state)
+    running = set(threading.enumerate())
     try:
         mngr.save(
             step,
@@ -114,6 +118,9 @@ def save(mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_
         )
         mngr.wait_until_finished()
     except BaseException:
+        # Orbax's threads of this save may still be writing into its directory: wait for them first
+        for thread in set(threading.enumerate()) - running:
+            thread.join(timeout=SAVE_THREADS_TIMEOUT)
         if multihost.is_main():
             remove_unfinished(str(mngr.directory), step)
         raise

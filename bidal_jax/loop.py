@@ -186,8 +186,8 @@ def prepare(
     if resume and not given.get("run_dir"):
         raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
     env_names = tuple(env_names)
-    if given.get("run_dir"):
-        rundir.check_not_in_use(given["run_dir"])
+    if given.get("run_dir"):  # a directory in use is refused before any other check names it
+        _main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
 
     def check(configs: Configs) -> None:
         validate.check(*configs, env_names=env_names)
@@ -220,21 +220,34 @@ def prepare(
     return configs
 
 
-def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
-    """Lock `run_dir` for this run (process 0, which writes; `rundir.hold`) and check a new run's
-    directory again under the lock (a run that ended meanwhile may have filled it). Every process
-    raises when process 0 is refused: RunDirInUse or ConfigError."""
+def _main_decides(check: Callable[[], None], what: str) -> None:
+    """Run `check` on process 0 only (the one that locks and writes); every process raises if it
+    raised a ConfigError (process 0 that one, the others one naming `what`). Every process calls it."""
     refused = None
     if multihost.is_main():
         try:
-            rundir.hold(run_dir)
-            if not resume:
-                check_run_dir(run_dir, overwrite)
+            check()
         except ConfigError as err:
-            rundir.release(run_dir)
             refused = err
     if multihost.largest(int(refused is not None)):
-        raise refused or rundir.RunDirInUse(f"run directory {run_dir}: process 0 could not lock it (see its error)")
+        raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
+
+
+def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
+    """Lock `run_dir` for this run (process 0; `rundir.hold`) and check a new run's directory again
+    under the lock (a run that ended meanwhile may have filled it). Every process raises when
+    process 0 is refused: RunDirInUse or ConfigError."""
+
+    def take() -> None:
+        rundir.hold(run_dir)
+        try:
+            if not resume:
+                check_run_dir(run_dir, overwrite)
+        except ConfigError:
+            rundir.release(run_dir)
+            raise
+
+    _main_decides(take, f"run directory {run_dir}")
 
 
 # ----- metrics --------------------------------------------------------------------------
