@@ -6,12 +6,15 @@
 `prepare` checks everything before anything is compiled or written: the configs
 (`validate.check`), the run directory (a new run never mixes into an existing one;
 `overwrite` deletes only what a run writes), a resumed run's checkpoint config, what the
-env must offer, and whether the training state fits in the device's memory. `train` runs
+env must offer, whether the training state fits in the device's memory and one checkpoint of
+it on the disk; then it locks the run directory (`rundir.hold`, process 0), which `train`
+releases when it ends: a second run, resumed run or experiment on it is refused. `train` runs
 the jitted epoch in Python: metrics (metrics.csv and TensorBoard), Orbax checkpoints (the
 latest two and the best), SIGINT/SIGTERM (save after the epoch in flight), and the
 divergence guard (a non-finite metric or parameter stops the run without saving it).
-Errors are exceptions whose message is one line: `ConfigError`, `CheckpointError` (bad
-input, nothing written), `Diverged`, `Interrupted` (a checkpoint was saved).
+Errors are exceptions whose message is one line: `ConfigError` (`rundir.RunDirInUse` among
+them), `CheckpointError` (bad input, nothing written), `Diverged`, `Interrupted` (a checkpoint
+was saved), `rundir.DiskError` (no space for one checkpoint at start, or a write failed).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import checkpoint, config as config_lib, multihost, transfer, validate
+from bidal_jax import checkpoint, config as config_lib, multihost, rundir, transfer, validate
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.validate import ConfigError, option
@@ -40,7 +43,9 @@ EXIT_ON_SIGNAL = {signal.SIGINT: 130, signal.SIGTERM: 143}
 # fields whose value on resume may differ from the checkpoint's
 RESUME_MAY_CHANGE = ("epochs", "run_dir")
 # what a run writes into its directory; overwrite deletes nothing else
-RUN_FILES = frozenset({"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints"})
+RUN_FILES = frozenset(
+    {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
+)
 # share of the device's memory the training state may take (the rest: activations, copies)
 MEMORY_SHARE = 0.9
 
@@ -125,7 +130,7 @@ def check_run_dir(run_dir: str, overwrite: bool) -> None:
     """A new run never mixes into an existing one; overwrite only deletes what a run writes."""
     if os.path.exists(run_dir) and not os.path.isdir(run_dir):
         raise ConfigError(f"--run-dir {run_dir}: is a file, not a directory")
-    entries = sorted(os.listdir(run_dir)) if os.path.isdir(run_dir) else []
+    entries = sorted(e for e in os.listdir(run_dir) if e != rundir.LOCK_FILE) if os.path.isdir(run_dir) else []
     if entries and not overwrite:
         raise ConfigError(
             f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run or --overwrite to delete it"
@@ -141,8 +146,7 @@ def state_bytes(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig)
 
     init, _ = make_train(env, config_lib.agent_spec(run.agent), net, train_cfg)
     keys = jax.ShapeDtypeStruct((run.seeds, 2), jnp.uint32)
-    shapes = jax.eval_shape(jax.vmap(init), keys)
-    return int(sum(np.prod(x.shape, dtype=np.int64) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(shapes)))
+    return rundir.tree_bytes(jax.eval_shape(jax.vmap(init), keys))
 
 
 def device_memory() -> int:
@@ -182,6 +186,8 @@ def prepare(
     if resume and not given.get("run_dir"):
         raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
     env_names = tuple(env_names)
+    if given.get("run_dir"):  # a directory in use is refused before any other check names it
+        _main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
 
     def check(configs: Configs) -> None:
         validate.check(*configs, env_names=env_names)
@@ -203,12 +209,45 @@ def prepare(
     validate.check_env_support(configs[1], env)
     from bidal_jax.train import device_layout
 
-    per_device = state_bytes(env, *configs) // len(device_layout(configs[0].seeds, configs[1], configs[0].env_shards)[0])
-    check_memory(per_device, device_memory(), configs[0].seeds)
+    whole = state_bytes(env, *configs)  # every seed's: what a checkpoint holds
+    check_memory(whole // len(device_layout(configs[0].seeds, configs[1], configs[0].env_shards)[0]), device_memory(),
+                 configs[0].seeds)
+    rundir.check_space(configs[0].run_dir, whole)
     if configs[0].init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(env, *configs, make_env=make_env)
+    lock(configs[0].run_dir, resume, overwrite)
     multihost.barrier("bidal_jax.loop.prepare")
     return configs
+
+
+def _main_decides(check: Callable[[], None], what: str) -> None:
+    """Run `check` on process 0 only (the one that locks and writes); every process raises if it
+    raised a ConfigError (process 0 that one, the others one naming `what`). Every process calls it."""
+    refused = None
+    if multihost.is_main():
+        try:
+            check()
+        except ConfigError as err:
+            refused = err
+    if multihost.largest(int(refused is not None)):
+        raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
+
+
+def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
+    """Lock `run_dir` for this run (process 0; `rundir.hold`) and check a new run's directory again
+    under the lock (a run that ended meanwhile may have filled it). Every process raises when
+    process 0 is refused: RunDirInUse or ConfigError."""
+
+    def take() -> None:
+        rundir.hold(run_dir)
+        try:
+            if not resume:
+                check_run_dir(run_dir, overwrite)
+        except ConfigError:
+            rundir.release(run_dir)
+            raise
+
+    _main_decides(take, f"run directory {run_dir}")
 
 
 # ----- metrics --------------------------------------------------------------------------
@@ -267,8 +306,9 @@ class MetricsLog:
             self.fields = list(row)
             with open(self.path, "w", newline="") as f:
                 csv.DictWriter(f, self.fields).writeheader()
+        # a run resumed from an older metrics.csv keeps its header: columns newer than it are left out
         with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, self.fields).writerow(row)
+            csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
         for key, value in row.items():
             if key != "epoch":
                 self.writer.add_scalar(key, value, int(row["epoch"]))
@@ -279,8 +319,11 @@ class MetricsLog:
             self.writer.close()
 
 
-def epoch_row(epoch: int, metrics: dict, wall: float, epoch_seconds: float, steps_before: float) -> dict[str, float]:
-    """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times."""
+def epoch_row(epoch: int, metrics: dict, epoch_seconds: float, steps_before: float, wall: float,
+              wall_with_compile: float) -> dict[str, float]:
+    """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times: `wall_time`
+    (`wall`: seconds of training, from when the programs were built) and `wall_time_with_compile` (seconds
+    from when `train` began, building and compiling the programs included), both summed over resumed sessions."""
     row = {"epoch": epoch}
     for key, value in sorted(metrics.items()):
         row[key] = float(np.mean(value))
@@ -289,6 +332,7 @@ def epoch_row(epoch: int, metrics: dict, wall: float, epoch_seconds: float, step
     steps = float(np.sum(metrics["env_steps"]))
     row["env_steps_total"] = steps
     row["wall_time"] = wall
+    row["wall_time_with_compile"] = wall_with_compile
     row["env_steps_per_second"] = (steps - steps_before) / max(epoch_seconds, 1e-9)
     return row
 
@@ -440,14 +484,34 @@ def train(
     the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
     edits a new run's initial state (see `build`).
 
+    Holds the run directory's lock (`prepare` took it; taken here if not) until it returns or raises.
     Raises CheckpointError (before writing anything) when the checkpoint cannot be
     restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
-    SIGINT/SIGTERM.
+    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
+    checkpoint is deleted: the last good one is what a resumed run continues).
 
     With several processes (`bidal_jax.multihost`), every process calls it: the seeds span every
     process's devices, the checkpoints are written by all, config.json, the metrics and the progress
     bar by process 0 only; a signal to any process stops all after the same epoch.
     """
+    begun = time.time()  # the clock of wall_time_with_compile
+    main = multihost.is_main()
+    if main:
+        rundir.hold(run.run_dir)
+    try:
+        return _train(env, run, train_cfg, net, quiet, resume, initialize, begun)
+    finally:
+        if main:
+            rundir.release(run.run_dir)
+
+
+def _last_good(saved: int | None, ckpt_dir: str) -> str:
+    return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
+
+
+def _train(env, run: RunConfig, train_cfg: TrainConfig, net: NetworkConfig, quiet: bool, resume: bool,
+           initialize: Callable | None, begun: float) -> dict[str, float]:
+    """`train`'s loop, the lock held; `begun`: when `train` was called."""
     from tqdm import tqdm
 
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
@@ -455,16 +519,20 @@ def train(
     with StopSignals(ckpt_dir) as stop:
         epoch, state, start_epoch, shards = build(env, run, train_cfg, net, resume, initialize=initialize)
         cfg = config_lib.to_dict(run, train_cfg, net)
-        if main:
-            os.makedirs(run.run_dir, exist_ok=True)
-            _write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
-        log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
-        mngr = checkpoint.manager(ckpt_dir)
+        saved = start_epoch if resume else None
+        with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
+            if main:
+                os.makedirs(run.run_dir, exist_ok=True)
+                _write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
+            log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
+            mngr = checkpoint.manager(ckpt_dir)
 
         row = log.last_row
         wall_before = row.get("wall_time", 0.0)
+        # (a run resumed from metrics written before this column: its time so far without compiling)
+        compiled_before = row.get("wall_time_with_compile", wall_before)
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
-        saved = start_epoch if resume else None
+        size = rundir.megabytes(rundir.with_margin(rundir.tree_bytes(state)))
         start = time.time()
         bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
                    unit="epoch", initial=start_epoch, total=run.epochs)
@@ -473,19 +541,24 @@ def train(
                 t = time.time()
                 state, metrics = epoch(state)
                 metrics = multihost.to_host(metrics)
-                row = epoch_row(e, metrics, wall_before + time.time() - start, time.time() - t, steps_before)
+                now = time.time()
+                row = epoch_row(e, metrics, now - t, steps_before, wall_before + now - start,
+                                compiled_before + now - begun)
                 steps_before = row["env_steps_total"]
-                log.write(row)
+                with rundir.disk_errors(f"writing the metrics of epoch {e} in {run.run_dir}",
+                                        _last_good(saved, ckpt_dir)):
+                    log.write(row)
                 bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
-                    last = f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
-                    raise Diverged(f"diverged at epoch {e}: {bad}; {last}")
+                    raise Diverged(f"diverged at epoch {e}: {bad}; {_last_good(saved, ckpt_dir)}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success
                 # read once: a signal arriving after this waits for the next epoch; one process's stops all
                 signum = multihost.largest(stop.signum or 0) or None
                 if e % run.checkpoint_every == 0 or e == run.epochs or done or signum:
-                    checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
+                    with rundir.disk_errors(f"saving checkpoint {e} in {ckpt_dir} (needs about {size})",
+                                            _last_good(saved, ckpt_dir)):
+                        checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
                     saved = e
                 if signum:
                     raise Interrupted(signum, e, ckpt_dir)
@@ -499,10 +572,12 @@ def train(
 
 
 def delete_run_dir(run_dir: str) -> None:
-    """Delete a run directory that `check_run_dir(run_dir, overwrite=True)` accepted: process 0
-    deletes it, every process waits until it is gone."""
+    """Delete what a run directory that `check_run_dir(run_dir, overwrite=True)` accepted holds, but
+    its lock: process 0 deletes it, every process waits until it is gone."""
     if multihost.is_main() and os.path.isdir(run_dir):
-        shutil.rmtree(run_dir)
+        for name in set(os.listdir(run_dir)) - {rundir.LOCK_FILE}:
+            path = os.path.join(run_dir, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
     multihost.barrier("bidal_jax.loop.delete_run_dir")
 
 

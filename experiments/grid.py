@@ -6,8 +6,11 @@ An experiment is a list of `Arm`s: a name and the config fields of one run (`run
 at its epochs: skipped), "resume" (an earlier checkpoint: continued from it) or "new" (no
 checkpoint: its directory is deleted and it starts again). `train_arms` trains them in-process
 through `bidal_jax.loop` (prepare, then train) and returns the exit code of experiments.run:
-0 done; 2 bad config or checkpoint (one `error: ...` line); 3 diverged; 130 and 143 stopped by
-SIGINT and SIGTERM (a checkpoint was saved).
+0 done; 2 bad config or checkpoint, or a run directory in use (one `error: ...` line); 3 diverged;
+4 the disk (no room for a checkpoint, or a write failed); 130 and 143 stopped by SIGINT and SIGTERM
+(a checkpoint was saved). Each run locks its own directory while it trains (`bidal_jax.rundir`), not
+the experiment's folder: two commands may share the folder (e.g. `experiments.transfer --arms
+source` and `--arms scratch`), but a run that another process trains is refused (exit 2).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import sys
 from typing import Any, Callable, Sequence
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop, transfer, validate
+from bidal_jax import checkpoint, config as config_lib, loop, rundir, transfer, validate
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import NetworkConfig, TrainConfig
 from bidal_jax.validate import ConfigError, option
@@ -174,6 +177,8 @@ def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
         return error(err, run_cli.EXIT_BAD_INPUT)
     except loop.Diverged as err:
         return error(err, run_cli.EXIT_DIVERGED)
+    except rundir.DiskError as err:
+        return error(err, run_cli.EXIT_DISK)
     except loop.Interrupted as stop:
         print(f"{stop}; run the same command again to continue", file=sys.stderr)
         return stop.exit_code

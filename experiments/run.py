@@ -14,14 +14,19 @@ and the best by eval success are kept). The loop, its checks and its outputs liv
   exits; a second signal exits at once.
 - A non-empty run directory is only continued (`--resume`) or deleted first
   (`--overwrite`, only once every check passed, and only if it holds nothing but what
-  a run writes). A training state larger than the device's memory is refused.
+  a run writes). A training state larger than the device's memory is refused, and so is
+  one whose checkpoint the run directory's disk has no room for.
+- One run at a time in a run directory: a run holds a lock on `<run-dir>/.lock` (host and
+  PID inside) while it lives; another run, `--resume` or experiment on it is refused.
 - Several processes (one per host) train one run together when the environment launches
   them: `JAX_COORDINATOR_ADDRESS`, `JAX_NUM_PROCESSES` and `JAX_PROCESS_ID`, or a SLURM or
   Open MPI launch of several tasks (`bidal_jax.multihost`; README "Several hosts").
 
-Exit codes: 0 done; 2 bad command line, config or checkpoint (one `error: ...` line on
-stderr, nothing written); 3 diverged; 130 stopped by SIGINT, 143 by SIGTERM (a
-checkpoint was saved).
+Exit codes: 0 done; 2 bad command line, config or checkpoint, or a run directory in use
+by another run (one `error: ...` line on stderr, nothing written); 3 diverged; 4 the
+disk: no room for one checkpoint at start (nothing written), or a write failed (no space,
+quota, read-only file system, I/O error; the unfinished checkpoint is deleted, the last
+good one is kept); 130 stopped by SIGINT, 143 by SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations
@@ -33,13 +38,14 @@ import os
 import sys
 
 import envs_mjx
-from bidal_jax import config as config_lib, loop, multihost, transfer
+from bidal_jax import config as config_lib, loop, multihost, rundir, transfer
 from bidal_jax.checkpoint import CheckpointError
 from bidal_jax.config import AGENTS, CONFIG_CLASSES, fields_help
 from bidal_jax.validate import ConfigError, option
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
+EXIT_DISK = 4
 CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
 
 
@@ -111,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                                            resume=args.resume, overwrite=args.overwrite)
     except (ConfigError, CheckpointError) as err:
         return _error(err, EXIT_BAD_INPUT)
+    except rundir.DiskError as err:
+        return _error(err, EXIT_DISK)
     if args.overwrite:
         loop.delete_run_dir(run.run_dir)
     loop.enable_compilation_cache()
@@ -124,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
         return _error(err, EXIT_BAD_INPUT)
     except loop.Diverged as err:
         return _error(err, EXIT_DIVERGED)
+    except rundir.DiskError as err:
+        return _error(err, EXIT_DISK)
     except loop.Interrupted as stop:
         print(f"{stop}; continue with --resume --run-dir {run.run_dir}", file=sys.stderr)
         return stop.exit_code

@@ -26,10 +26,11 @@ TINY = [
 
 
 def snapshot(root) -> dict | None:
-    """Every path under `root` with its mtime, size and content hash (None if `root` does not exist)."""
+    """Every path under `root` with its mtime, size and content hash (None if `root` does not exist); not
+    `root`'s own mtime, which a run refused after it locked the directory changes (it adds and deletes `.lock`)."""
     if not os.path.exists(root):
         return None
-    found = {".": os.stat(root).st_mtime_ns}
+    found = {}
     for dirpath, dirnames, filenames in os.walk(root):
         for name in dirnames + filenames:
             path = os.path.join(dirpath, name)
