@@ -6,8 +6,9 @@
   nothing written), delete the run directory when asked, build the env, restore another
   run's parameters when `init_from` asks, train.
 - `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
-  its one line on stderr: 2 bad input (an option, config, checkpoint or file); 3 diverged;
-  130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+  its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run directory
+  in use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed); 130 and 143
+  stopped by SIGINT and SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations
@@ -23,23 +24,26 @@ from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunCon
 from bidal_jax.run import loop, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import Diverged, Interrupted
+from bidal_jax.run.rundir import DiskError
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
-# what ends a command that trains: bad input, a diverged run, a stop signal
-FAILURES = (ConfigError, CheckpointError, Diverged, Interrupted)
+EXIT_DISK = 4
+# what ends a command that trains: bad input, a diverged run, the disk, a stop signal
+FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, Interrupted)
+EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK))  # anything else: EXIT_BAD_INPUT
 CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
 
 
 def exit_code(err: Exception, resume_hint: str = "run the same command again to continue") -> int:
     """Print the one line of an error that ends a command and return its exit code: a stop signal's
     (its checkpoint saved; `resume_hint` says how to continue, "{run_dir}" standing for the run's
-    directory), 3 for `Diverged`, else 2 (bad input)."""
+    directory), else that of `EXIT_CODES`, or 2 (bad input)."""
     if isinstance(err, Interrupted):
         print(f"{err}; {resume_hint.format(run_dir=err.run_dir)}", file=sys.stderr)
         return err.exit_code
     print(f"error: {err}", file=sys.stderr)
-    return EXIT_DIVERGED if isinstance(err, Diverged) else EXIT_BAD_INPUT
+    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT)
 
 
 def _bool(text: str) -> bool:

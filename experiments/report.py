@@ -10,6 +10,10 @@
   seed) and PREFIX.csv (the plotted numbers).
 - `markdown_table`, `summary_table`: Markdown tables.
 
+Times: metrics.csv's `wall_time` counts from when the training programs were built (compilation
+not counted), `wall_time_with_compile` from when training began (compilation included; absent
+from runs recorded before it); `with_compile_times(run)` gives the tables the latter where a run has it.
+
 Used by `python -m experiments.plot`, the paper experiments and the benchmarks. It imports
 neither JAX nor the environments (matplotlib only when it draws), so that it stays light.
 """
@@ -28,6 +32,7 @@ import numpy as np
 
 X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
 SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
+WITH_COMPILE = "wall_time_with_compile"
 
 
 class RunError(ValueError):
@@ -43,7 +48,8 @@ def load_run(run_dir: str) -> dict:
 
     Keys: "dir", "name" (basename), "config" (the parsed config.json), "env", "agent",
     "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
-    "success" [E, S] (eval success of each seed). Raises RunError naming the path.
+    "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
+    success of each seed). Raises RunError naming the path.
     """
     if not os.path.isdir(run_dir):
         raise RunError(f"{run_dir}: no such run directory")
@@ -67,13 +73,23 @@ def load_run(run_dir: str) -> dict:
     try:
         success = np.stack([_column(rows, k) for _, k in seed_columns], axis=1)
         epoch, wall = _column(rows, "epoch"), _column(rows, "wall_time")
+        with_compile = _column(rows, WITH_COMPILE) if WITH_COMPILE in rows[0] else None
         steps = _column(rows, "env_steps_total") / seeds
     except (KeyError, ValueError) as err:
         raise RunError(f"{metrics_path}: missing or malformed column ({err!r})") from err
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
-        "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall, "success": success,
+        "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
+        WITH_COMPILE: with_compile, "success": success,
     }
+
+
+def with_compile_times(run: dict) -> tuple[dict, bool]:
+    """(`run` whose "wall_time" counts its compilation, True) where its metrics.csv has
+    `wall_time_with_compile`; else (`run` as it is, False: its times start after compiling)."""
+    if run[WITH_COMPILE] is None:
+        return run, False
+    return {**run, "wall_time": run[WITH_COMPILE]}, True
 
 
 @dataclasses.dataclass(frozen=True)

@@ -15,14 +15,19 @@ loop and its outputs in `bidal_jax.run.loop`, the options and the start of a run
   exits; a second signal exits at once.
 - A non-empty run directory is only continued (`--resume`) or deleted first
   (`--overwrite`, only once every check passed, and only if it holds nothing but what
-  a run writes). A training state larger than the device's memory is refused.
+  a run writes). A training state larger than the device's memory is refused, and so is
+  one whose checkpoint the run directory's disk has no room for.
+- One run at a time in a run directory: a run holds a lock on `<run-dir>/.lock` (host and
+  PID inside) while it lives; another run, `--resume` or experiment on it is refused.
 - Several processes (one per host) train one run together when the environment launches
   them: `JAX_COORDINATOR_ADDRESS`, `JAX_NUM_PROCESSES` and `JAX_PROCESS_ID`, or a SLURM or
   Open MPI launch of several tasks (`bidal_jax.run.multihost`; docs/usage.md "Several hosts").
 
-Exit codes: 0 done; 2 bad command line, config or checkpoint (one `error: ...` line on
-stderr, nothing written); 3 diverged; 130 stopped by SIGINT, 143 by SIGTERM (a
-checkpoint was saved).
+Exit codes (`cli.exit_code`): 0 done; 2 bad command line, config or checkpoint, or a run directory in use
+by another run (one `error: ...` line on stderr, nothing written); 3 diverged; 4 the
+disk: no room for one checkpoint at start (nothing written), or a write failed (no space,
+quota, read-only file system, I/O error; the unfinished checkpoint is deleted, the last
+good one is kept); 130 stopped by SIGINT, 143 by SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations

@@ -23,20 +23,24 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 # ----- paper experiments (experiments/paper/grid.py) without training ----------------------------------------
 
 
-def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal") -> None:
+def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal",
+                   compile_seconds: float | None = None) -> None:
     """A run directory as `loop.train` writes it (config.json, metrics.csv), with an (empty) checkpoint
     step unless `checkpoint_epoch` is None. `rows`: per epoch, each seed's eval success; every
-    epoch is 100 env steps per seed and 10 s of wall time."""
+    epoch is 100 env steps per seed and 10 s of wall time. With `compile_seconds`, metrics.csv has
+    `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column."""
     seeds = len(rows[0])
     os.makedirs(run_dir if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
     with open(os.path.join(run_dir, "config.json"), "w") as f:
         json.dump({"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}, f)
     with open(os.path.join(run_dir, "metrics.csv"), "w", newline="") as f:
         writer = csv.writer(f)
+        with_compile = [] if compile_seconds is None else ["wall_time_with_compile"]
         writer.writerow(["epoch", "eval_success", *(f"eval_success_seed{i}" for i in range(seeds)), "env_steps_total",
-                         "wall_time"])
+                         "wall_time", *with_compile])
         for epoch, success in enumerate(rows, start=1):
-            writer.writerow([epoch, sum(success) / seeds, *success, 100 * seeds * epoch, 10.0 * epoch])
+            times = [10.0 * epoch] + ([] if compile_seconds is None else [10.0 * epoch + compile_seconds])
+            writer.writerow([epoch, sum(success) / seeds, *success, 100 * seeds * epoch, *times])
 
 
 @pytest.fixture
@@ -57,8 +61,10 @@ def no_nicol(monkeypatch):
         return resolve(given)
 
     def train(env, config, *, resume, initialize, **kwargs):
-        assert not os.path.exists(config.run.run_dir) or resume  # a run without a checkpoint was deleted first
-        calls.append(("train", config.run.run_dir, resume, initialize is not None))
+        # a run without a checkpoint was emptied first (but for its lock, which a real prepare took)
+        run_dir = config.run.run_dir
+        assert resume or not os.path.exists(run_dir) or set(os.listdir(run_dir)) <= {".lock"}
+        calls.append(("train", run_dir, resume, initialize is not None))
         return {}
 
     monkeypatch.setattr(preflight, "prepare", prepare)

@@ -18,7 +18,7 @@ TINY = [
     "--env", "planar_reach", "--agent", "proprio_baseline", "--num-envs", "4", "--cycles-per-epoch", "2",
     "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--quiet",
 ]
-TIMING = ("wall_time", "env_steps_per_second")
+TIMING = ("wall_time", "wall_time_with_compile", "env_steps_per_second")
 
 
 def rows(run_dir):
@@ -40,10 +40,11 @@ def assert_same_metrics(a_dir, b_dir) -> None:
 
 
 def snapshot(root) -> dict | None:
-    """Every path under `root` with its mtime, size and content hash (None if `root` does not exist)."""
+    """Every path under `root` with its mtime, size and content hash (None if `root` does not exist); not
+    `root`'s own mtime, which a run refused after it locked the directory changes (it adds and deletes `.lock`)."""
     if not os.path.exists(root):
         return None
-    found = {".": os.stat(root).st_mtime_ns}
+    found = {}
     for dirpath, dirnames, filenames in os.walk(root):
         for name in dirnames + filenames:
             path = os.path.join(dirpath, name)

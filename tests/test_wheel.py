@@ -4,8 +4,11 @@ tiny training epoch (slow: builds a wheel and compiles; about a minute).
 
 The wheel is built (`pip wheel --no-deps`) from a copy of exactly the folders pyproject.toml
 packages, so that stale in-tree build output cannot leak into it. It is installed with
-`--no-deps` into a venv made with `--system-site-packages`, so that jax, mujoco and the
-rest come from the base environment. The base environment may also hold this project as an
+`--no-deps` into a fresh venv whose `.pth` file adds the site-packages of the interpreter running
+the tests (`site.getsitepackages()`, processed as site directories), so that jax, mujoco and the
+rest come from wherever this interpreter finds them: a venv's own, or the base's when it runs
+outside one (`--system-site-packages` would give the base interpreter's, which inside a venv lack
+them). That environment may also hold this project as an
 editable install, whose import finder would serve the repository's sources; it comes after
 the normal path search, which finds the wheel in the venv's own site-packages first, and
 the venv's Python runs with `-I` (no PYTHONPATH, no user site, not started from the repo),
@@ -15,6 +18,7 @@ and the script asserts that every module it imports lies in the venv's site-pack
 import fnmatch
 import os
 import shutil
+import site
 import subprocess
 import sys
 import tomllib
@@ -74,6 +78,17 @@ def expected_files() -> set[str]:
     return expected
 
 
+def make_venv(venv: Path) -> Path:
+    """A venv at `venv` that sees this interpreter's site-packages after its own; its Python."""
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
+    python = venv / "bin" / "python"
+    purelib = subprocess.run([str(python), "-I", "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                             check=True, capture_output=True, text=True).stdout.strip()
+    lines = [f"import site; site.addsitedir({path!r})" for path in site.getsitepackages()]
+    (Path(purelib) / "outer_site_packages.pth").write_text("\n".join(lines) + "\n")
+    return python
+
+
 def build_wheel(tmp: Path) -> Path:
     """Build the wheel from a clean copy of pyproject.toml, README.md and the shipped folders."""
     src = tmp / "src"
@@ -95,9 +110,7 @@ def test_wheel_installs_and_runs_outside_the_repository(tmp_path):
     missing = expected_files() - set(zipfile.ZipFile(wheel).namelist())
     assert not missing, f"the wheel lacks {sorted(missing)}; list new packages in pyproject.toml"
 
-    venv = tmp_path / "venv"
-    subprocess.run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", str(venv)], check=True)
-    python = venv / "bin" / "python"
+    python = make_venv(tmp_path / "venv")
     subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", "--no-index", "-q",
                     str(wheel)], check=True)
 

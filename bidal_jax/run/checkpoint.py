@@ -10,28 +10,34 @@ A manager keeps the latest two checkpoints and the best one by evaluation succes
 Crash safety: Orbax writes each step to `<epoch>.orbax-checkpoint-tmp/` and renames it
 when complete, so a process killed at any moment (even mid-save) leaves the previous
 checkpoint intact; the step listing ignores unfinished temporary directories and a
-writing `manager` deletes them. Damage is detected, never restored silently: Orbax and
+writing `manager` deletes them. A save that fails (e.g. the disk is full) deletes its own at once;
+saves are synchronous (the loop waits for each anyway): a failure is raised by `save` itself.
+Damage is detected, never restored silently: Orbax and
 TensorStore reject truncated or missing files, and the digest catches flipped bytes,
 which they would load without complaint. Every failure is a `CheckpointError` whose
 message says which checkpoint and what is wrong with it.
 
 `restore_partial` reads only named leaves (e.g. the acting parameters and normalisers)
-with Orbax partial restore, checked against the digest like a full restore.
+with Orbax partial restore, checked against the digest like a full restore. Readers open only the
+items they need, each with its own handler (no warning about the manager's `metrics` item).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
+import threading
 import zlib
 from typing import Any
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
+from etils import epath
 
 from bidal_jax import replay
-from bidal_jax.run import multihost
+from bidal_jax.run import multihost, rundir
 
 
 class CheckpointError(Exception):
@@ -40,6 +46,8 @@ class CheckpointError(Exception):
 
 BEST_METRIC = "eval_success"
 ARRAY_ITEMS = ("state", "buffer")
+# seconds to wait for each of the threads of a failed save before deleting what it wrote
+SAVE_THREADS_TIMEOUT = 30.0
 
 
 def _handlers(partial: bool = False) -> dict[str, ocp.CheckpointHandler]:
@@ -61,7 +69,8 @@ def manager(directory: str, keep_latest: int = 2) -> ocp.CheckpointManager:
     ])
     # best_fn makes the manager write each step's metrics to disk, so the best survives a resume
     options = ocp.CheckpointManagerOptions(
-        preservation_policy=policy, best_fn=_best_metric, create=True, cleanup_tmp_directories=True
+        preservation_policy=policy, best_fn=_best_metric, create=True, cleanup_tmp_directories=True,
+        enable_async_checkpointing=False,
     )
     return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_handlers=_handlers())
 
@@ -98,17 +107,34 @@ def save(
     `eval_success` for the best checkpoint; wait until it is on disk. `env_shards`: how many
     shards kept the buffer (its layout, `replay.relayout`), saved beside the digest."""
     fields, buffer = _split(state)
-    mngr.save(
-        step,
-        args=ocp.args.Composite(
-            state=ocp.args.StandardSave(fields),
-            buffer=ocp.args.StandardSave(buffer),
-            config=ocp.args.JsonSave(config),
-            digest=ocp.args.JsonSave({"crc32": digest(state), "env_shards": env_shards}),
-        ),
-        metrics={BEST_METRIC: float(eval_success)},
-    )
-    mngr.wait_until_finished()
+    running = set(threading.enumerate())
+    try:
+        mngr.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(fields),
+                buffer=ocp.args.StandardSave(buffer),
+                config=ocp.args.JsonSave(config),
+                digest=ocp.args.JsonSave({"crc32": digest(state), "env_shards": env_shards}),
+            ),
+            metrics={BEST_METRIC: float(eval_success)},
+        )
+        mngr.wait_until_finished()
+    except BaseException:
+        # Orbax's threads of this save may still be writing into its directory: wait for them first
+        for thread in set(threading.enumerate()) - running:
+            thread.join(timeout=SAVE_THREADS_TIMEOUT)
+        if multihost.is_main():
+            remove_unfinished(str(mngr.directory), step)
+        raise
+
+
+def remove_unfinished(directory: str, step: int) -> None:
+    """Delete the unfinished save of `step` (Orbax's `<step>.orbax-checkpoint-tmp*` directories) in `directory`."""
+    prefix = f"{step}{ocp.path.step.TMP_DIR_SUFFIX}"
+    for name in os.listdir(directory) if os.path.isdir(directory) else []:
+        if name.startswith(prefix):
+            shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
 
 
 def steps(directory: str) -> list[int]:
@@ -163,11 +189,7 @@ def _step_dir(directory: str, step: int | None) -> tuple[str, int]:
 
 def _reason(err: BaseException) -> str:
     """The first line of the innermost cause: Orbax wraps TensorStore's precise message in long ones."""
-    for _ in range(16):  # bounded: a chain may loop
-        inner = err.__cause__ or err.__context__
-        if inner is None:
-            break
-        err = inner
+    *_, err = rundir.causes(err)
     lines = str(err).strip().splitlines()
     return f"{type(err).__name__}: {lines[0] if lines else ''}"[:300]
 
@@ -235,18 +257,18 @@ def restore(directory: str, abstract_state: Any, step: int | None = None, env_sh
 
 
 def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
-    """{"state": tree, "buffer": tree} (the items `names`) of a checkpoint's array metadata (shapes, dtypes;
-    no data)."""
-    reader = ocp.Checkpointer(ocp.CompositeCheckpointHandler(**_handlers()))
-    try:
-        items = reader.metadata(path).item_metadata
-        saved = {name: items[name] for name in names}
-    except Exception as err:
-        raise CheckpointError(f"{where} is damaged: its metadata cannot be read ({_reason(err)})") from err
-    missing = [name for name, tree in saved.items() if tree is None]
-    if missing:
-        raise CheckpointError(f"{where} is damaged: it has no {missing[0]}")
-    return {name: dict(tree) for name, tree in saved.items()}
+    """{"state": tree, "buffer": tree} (the items `names`) of a checkpoint's array metadata (shapes, dtypes; no
+    data), each read by its item's handler alone: the other items are not opened."""
+    handlers, saved = _handlers(), {}
+    for name in names:
+        item = os.path.join(path, name)
+        if not os.path.isdir(item):
+            raise CheckpointError(f"{where} is damaged: it has no {name}")
+        try:
+            saved[name] = dict(handlers[name].metadata(epath.Path(item)))
+        except Exception as err:
+            raise CheckpointError(f"{where} is damaged: its metadata cannot be read ({_reason(err)})") from err
+    return saved
 
 
 def read_metadata(directory: str, step: int | None = None, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:

@@ -6,9 +6,10 @@
 `train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
 (metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
 `checkpoint`), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
-non-finite metric or parameter stops the run without saving it; `guard`). Errors are
-exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
-`Diverged`, `Interrupted` (a checkpoint was saved).
+non-finite metric or parameter stops the run without saving it; `guard`), holding the run
+directory's lock (`rundir`) throughout. Errors are exceptions whose message is one line:
+`CheckpointError` (bad input, nothing written), `Diverged`, `Interrupted` (a checkpoint was
+saved), `rundir.DiskError` (a write failed for want of disk).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bidal_jax.config import Config
-from bidal_jax.run import checkpoint, multihost
+from bidal_jax.run import checkpoint, multihost, rundir
 from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
 from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
@@ -99,61 +100,81 @@ def train(
     the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
     edits a new run's initial state (see `build`).
 
-    Raises CheckpointError (before writing anything) when the checkpoint cannot be
+    Holds the run directory's lock (`preflight.prepare` took it; taken here if not) until it returns
+    or raises. Raises CheckpointError (before writing anything) when the checkpoint cannot be
     restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
-    SIGINT/SIGTERM.
+    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
+    checkpoint is deleted: the last good one is what a resumed run continues).
 
     With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
     process's devices, the checkpoints are written by all, config.json, the metrics and the progress
     bar by process 0 only; a signal to any process stops all after the same epoch.
     """
+    begun = time.time()  # the clock of wall_time_with_compile
+    main, run_dir = multihost.is_main(), config.run.run_dir
+    if main:
+        rundir.hold(run_dir)
+    try:
+        return _train(env, config, quiet, resume, initialize, begun)
+    finally:
+        if main:
+            rundir.release(run_dir)
+
+
+def _last_good(saved: int | None, ckpt_dir: str) -> str:
+    return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
+
+
+def _train(
+    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float
+) -> dict[str, float]:
+    """`train`'s loop, the lock held; `begun`: when `train` was called."""
     run = config.run
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
         epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize)
         cfg = config.to_dict()
-        if main:
-            os.makedirs(run.run_dir, exist_ok=True)
-            write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
-        log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
-        mngr = checkpoint.manager(ckpt_dir)
+        saved = start_epoch if resume else None
+        with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
+            if main:
+                os.makedirs(run.run_dir, exist_ok=True)
+                write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
+            log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
+            mngr = checkpoint.manager(ckpt_dir)
 
         row = log.last_row
         wall_before = row.get("wall_time", 0.0)
+        # (a run resumed from metrics written before this column: its time so far without compiling)
+        compiled_before = row.get("wall_time_with_compile", wall_before)
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
-        saved = start_epoch if resume else None
+        size = rundir.megabytes(rundir.with_margin(rundir.tree_bytes(state)))
         start = time.time()
-        bar = tqdm(
-            range(start_epoch + 1, run.epochs + 1),
-            desc=f"{run.env}/{run.agent}",
-            disable=quiet or not main,
-            unit="epoch",
-            initial=start_epoch,
-            total=run.epochs,
-        )
+        bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
+                   unit="epoch", initial=start_epoch, total=run.epochs)
         try:
             for e in bar:
                 t = time.time()
                 state, metrics = epoch(state)
                 metrics = multihost.to_host(metrics)
-                row = epoch_row(e, metrics, wall_before + time.time() - start, time.time() - t, steps_before)
+                now = time.time()
+                row = epoch_row(e, metrics, now - t, steps_before, wall_before + now - start,
+                                compiled_before + now - begun)
                 steps_before = row["env_steps_total"]
-                log.write(row)
+                with rundir.disk_errors(f"writing the metrics of epoch {e} in {run.run_dir}",
+                                        _last_good(saved, ckpt_dir)):
+                    log.write(row)
                 bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
-                    last = (
-                        f"the last good checkpoint is epoch {saved} in {ckpt_dir}"
-                        if saved
-                        else "no checkpoint was saved"
-                    )
-                    raise Diverged(f"diverged at epoch {e}: {bad}; {last}")
+                    raise Diverged(f"diverged at epoch {e}: {bad}; {_last_good(saved, ckpt_dir)}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success
                 # read once: a signal arriving after this waits for the next epoch; one process's stops all
                 signum = multihost.largest(stop.signum or 0) or None
                 if e % run.checkpoint_every == 0 or e == run.epochs or done or signum:
-                    checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
+                    with rundir.disk_errors(f"saving checkpoint {e} in {ckpt_dir} (needs about {size})",
+                                            _last_good(saved, ckpt_dir)):
+                        checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
                     saved = e
                 if signum:
                     raise Interrupted(signum, e, run.run_dir)

@@ -66,8 +66,9 @@ class MetricsLog:
             self.fields = list(row)
             with open(self.path, "w", newline="") as f:
                 csv.DictWriter(f, self.fields).writeheader()
+        # a run resumed from an older metrics.csv keeps its header: columns newer than it are left out
         with open(self.path, "a", newline="") as f:
-            csv.DictWriter(f, self.fields).writerow(row)
+            csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
         for key, value in row.items():
             if key != "epoch":
                 self.writer.add_scalar(key, value, int(row["epoch"]))
@@ -78,8 +79,11 @@ class MetricsLog:
             self.writer.close()
 
 
-def epoch_row(epoch: int, metrics: dict, wall: float, epoch_seconds: float, steps_before: float) -> dict[str, float]:
-    """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times."""
+def epoch_row(epoch: int, metrics: dict, epoch_seconds: float, steps_before: float, wall: float,
+              wall_with_compile: float) -> dict[str, float]:
+    """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times: `wall_time`
+    (`wall`: seconds of training, from when the programs were built) and `wall_time_with_compile` (seconds
+    from when `train` began, building and compiling the programs included), both summed over resumed sessions."""
     row = {"epoch": epoch}
     for key, value in sorted(metrics.items()):
         row[key] = float(np.mean(value))
@@ -88,5 +92,6 @@ def epoch_row(epoch: int, metrics: dict, wall: float, epoch_seconds: float, step
     steps = float(np.sum(metrics["env_steps"]))
     row["env_steps_total"] = steps
     row["wall_time"] = wall
+    row["wall_time_with_compile"] = wall_with_compile
     row["env_steps_per_second"] = (steps - steps_before) / max(epoch_seconds, 1e-9)
     return row

@@ -4,8 +4,11 @@
 
 `prepare` checks the config (`validate.check`), the run directory (a new run never mixes into
 an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
-config, what the env must offer, whether the training state fits in the device's memory and,
-for a transfer, the source run. Errors are `ConfigError` or `CheckpointError`, one line each.
+config, what the env must offer, whether the training state fits in the device's memory and one
+checkpoint of it on the disk and, for a transfer, the source run; then it locks the run directory
+(`rundir.hold`, process 0), which `loop.train` releases when it ends: a second run, resumed run or
+experiment on it is refused. Errors are one line each: `ConfigError` (`rundir.RunDirInUse` among
+them), `CheckpointError`, `rundir.DiskError` (no space for one checkpoint).
 """
 
 from __future__ import annotations
@@ -19,10 +22,9 @@ from typing import Any, Callable, Iterable
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
-from bidal_jax.run import multihost, transfer, validate
+from bidal_jax.run import multihost, rundir, transfer, validate
 from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config
 from bidal_jax.run.devices import device_layout
 from bidal_jax.train import make_train
@@ -30,7 +32,9 @@ from bidal_jax.train import make_train
 # fields whose value on resume may differ from the checkpoint's
 RESUME_MAY_CHANGE = ("epochs", "run_dir")
 # what a run writes into its directory; overwrite deletes nothing else
-RUN_FILES = frozenset({"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints"})
+RUN_FILES = frozenset(
+    {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
+)
 # share of the device's memory the training state may take (the rest: activations, copies)
 MEMORY_SHARE = 0.9
 def _config_differences(saved: dict, other: dict) -> list[tuple[str, str, object, object]]:
@@ -96,7 +100,7 @@ def check_run_dir(run_dir: str, overwrite: bool) -> None:
     """A new run never mixes into an existing one; overwrite only deletes what a run writes."""
     if os.path.exists(run_dir) and not os.path.isdir(run_dir):
         raise ConfigError(f"--run-dir {run_dir}: is a file, not a directory")
-    entries = sorted(os.listdir(run_dir)) if os.path.isdir(run_dir) else []
+    entries = sorted(e for e in os.listdir(run_dir) if e != rundir.LOCK_FILE) if os.path.isdir(run_dir) else []
     if entries and not overwrite:
         raise ConfigError(
             f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run "
@@ -114,8 +118,7 @@ def state_bytes(env, config: Config) -> int:
     allocated."""
     init, _ = make_train(env, config)
     keys = jax.ShapeDtypeStruct((config.run.seeds, 2), jnp.uint32)
-    shapes = jax.eval_shape(jax.vmap(init), keys)
-    return int(sum(np.prod(x.shape, dtype=np.int64) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(shapes)))
+    return rundir.tree_bytes(jax.eval_shape(jax.vmap(init), keys))
 
 
 def device_memory() -> int:
@@ -155,6 +158,8 @@ def prepare(
     if resume and not given.get("run_dir"):
         raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
     env_names = tuple(env_names)
+    if given.get("run_dir"):  # a directory in use is refused before any other check names it
+        _main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
     config = resolve(given)
     validate.check(config, env_names=env_names)  # the values given
     if resume:
@@ -171,17 +176,51 @@ def prepare(
     run = config.run
     env = make_env(run.env, render=False)
     validate.check_env_support(config.train, env)
-    per_device = state_bytes(env, config) // len(device_layout(run.seeds, config.train, run.env_shards)[0])
-    check_memory(per_device, device_memory(), run.seeds)
+    whole = state_bytes(env, config)  # every seed's: what a checkpoint holds
+    check_memory(whole // len(device_layout(run.seeds, config.train, run.env_shards)[0]), device_memory(), run.seeds)
+    rundir.check_space(run.run_dir, whole)
     if run.init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(env, config, make_env=make_env)
+    lock(run.run_dir, resume, overwrite)
     multihost.barrier("bidal_jax.run.preflight.prepare")
     return config
 
 
+def _main_decides(check: Callable[[], None], what: str) -> None:
+    """Run `check` on process 0 only (the one that locks and writes); every process raises if it
+    raised a ConfigError (process 0 that one, the others one naming `what`). Every process calls it."""
+    refused = None
+    if multihost.is_main():
+        try:
+            check()
+        except ConfigError as err:
+            refused = err
+    if multihost.largest(int(refused is not None)):
+        raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
+
+
+def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
+    """Lock `run_dir` for this run (process 0; `rundir.hold`) and check a new run's directory again
+    under the lock (a run that ended meanwhile may have filled it). Every process raises when
+    process 0 is refused: RunDirInUse or ConfigError."""
+
+    def take() -> None:
+        rundir.hold(run_dir)
+        try:
+            if not resume:
+                check_run_dir(run_dir, overwrite)
+        except ConfigError:
+            rundir.release(run_dir)
+            raise
+
+    _main_decides(take, f"run directory {run_dir}")
+
+
 def delete_run_dir(run_dir: str) -> None:
-    """Delete a run directory that `check_run_dir(run_dir, overwrite=True)` accepted: process 0
-    deletes it, every process waits until it is gone."""
+    """Delete what a run directory that `check_run_dir(run_dir, overwrite=True)` accepted holds, but
+    its lock: process 0 deletes it, every process waits until it is gone."""
     if multihost.is_main() and os.path.isdir(run_dir):
-        shutil.rmtree(run_dir)
+        for name in set(os.listdir(run_dir)) - {rundir.LOCK_FILE}:
+            path = os.path.join(run_dir, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
     multihost.barrier("bidal_jax.run.preflight.delete_run_dir")

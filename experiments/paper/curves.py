@@ -28,15 +28,17 @@ run dir, new/resume/done) and its estimated time on one H200 running the runs on
 (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
 whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
 is skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint
-starts again. The persistent compilation cache is not used,
-so that every run's `wall_time` includes its compilation.
+starts again. The persistent compilation cache is not used, so that every run's
+`wall_time_with_compile` (metrics.csv; `wall_time` starts after compiling) holds a whole compilation.
 
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
 per task, one line per agent: eval success against env steps per seed, mean ± std over seeds;
 `experiments/report.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
-`--last-n` epochs, per agent and task, each run's wall time, their total, and the runs missing or
-unfinished). `--report` trains nothing and writes only these, e.g. from run folders whose
-checkpoints were not kept (results/ holds no checkpoints: .gitignore).
+`--last-n` epochs, per agent and task, each run's wall time with its compilation, their total, and
+the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
+`wall_time`, marked "*": compilation not counted). `--report` trains nothing and writes only
+these, e.g. from run folders whose checkpoints were not kept (results/ holds no checkpoints:
+.gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line, nothing written); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was
@@ -161,12 +163,18 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def seconds(run: dict) -> str:
+    """The run's last time with its compilation (`report.with_compile_times`), or its `wall_time` marked "*"."""
+    timed, with_compile = report.with_compile_times(run)
+    return f"{timed['wall_time'][-1]:,.0f} s" + ("" if with_compile else "*")
+
+
 def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
     """Final success (mean ± std over seeds of each seed's last `last_n` epochs), the run's wall
-    time, and how far it got when it is unfinished."""
+    time (`seconds`), and how far it got when it is unfinished."""
     done = int(run["epoch"][-1])
     progress = "" if done >= epochs else f", epoch {done} of {epochs}"
-    return f"{report.final_cell(curve, last_n)}, {run['wall_time'][-1]:,.0f} s{progress}"
+    return f"{report.final_cell(curve, last_n)}, {seconds(run)}{progress}"
 
 
 def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
@@ -205,22 +213,21 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str 
     if not runs:
         return None
     report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
-    total = sum(float(r["wall_time"][-1]) for r in runs.values())
-    return "\n".join(
-        [
-            f"# {title}",
-            "",
-            f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
-            "then the run's wall time (its last `wall_time`, compilation included).",
-            "",
-            results_table(arms, runs, last_n),
-            "",
-            f"Total wall time of the runs: {duration(total)}.",
-            "",
-            gaps(arms, runs),
-            "",
-        ]
-    )
+    total = sum(float(report.with_compile_times(r)[0]["wall_time"][-1]) for r in runs.values())
+    return "\n".join([
+        f"# {title}",
+        "",
+        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
+        "then the run's wall time (its last `wall_time_with_compile`, compilation included; * its last "
+        "`wall_time`, compilation not counted, where metrics.csv predates that column).",
+        "",
+        results_table(arms, runs, last_n),
+        "",
+        f"Total wall time of the runs: {duration(total)}.",
+        "",
+        gaps(arms, runs),
+        "",
+    ])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

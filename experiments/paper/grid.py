@@ -6,8 +6,11 @@ An experiment is a list of `Arm`s: a name and the config fields of one run (`run
 at its epochs: skipped), "resume" (an earlier checkpoint: continued from it) or "new" (no
 checkpoint: its directory is deleted and it starts again). `train_arms` trains them in-process
 (`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`): 0 done; 2 bad
-config or checkpoint (one `error: ...` line); 3 diverged; 130 and 143 stopped by SIGINT and
-SIGTERM (a checkpoint was saved).
+config or checkpoint, or a run directory in use (one `error: ...` line); 3 diverged; 4 the disk
+(no room for a checkpoint, or a write failed); 130 and 143 stopped by SIGINT and SIGTERM (a
+checkpoint was saved). Each run locks its own directory while it trains (`bidal_jax.run.rundir`),
+not the experiment's folder: two commands may share the folder (e.g. `experiments.paper.transfer_learning
+--arms source` and `--arms scratch`), but a run that another process trains is refused (exit 2).
 """
 
 from __future__ import annotations

@@ -94,7 +94,7 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
         ("train", unstarted, False, False),
     ]
     assert f"planar_reach/proprio_baseline: done ({done})" in capsys.readouterr().out
-    assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
+    assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s* |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
 
 
 @pytest.mark.parametrize(
@@ -162,20 +162,21 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
     assert curves.main([*REPORT, "--out", str(out)]) == 0
     assert "no epochs yet: nothing to plot" in capsys.readouterr().out and not out.exists()
     written = {
-        ("planar_reach", "proprio_baseline"): [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)],
-        ("planar_reach", "multimodal_bidal"): [(0.2, 0.2), (0.4, 0.6)],
-        ("ur5_reach", "proprio_baseline"): [(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)],
+        ("planar_reach", "proprio_baseline"): ([(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None),
+        ("planar_reach", "multimodal_bidal"): ([(0.2, 0.2), (0.4, 0.6)], 60.0),  # with wall_time_with_compile
+        ("ur5_reach", "proprio_baseline"): ([(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)], None),
     }
-    for (task, agent), rows in written.items():
-        fake_run(str(out / task / agent), task, rows, None, agent=agent)
+    for (task, agent), (rows, compile_seconds) in written.items():
+        fake_run(str(out / task / agent), task, rows, None, agent=agent, compile_seconds=compile_seconds)
     assert curves.main([*REPORT, "--out", str(out)]) == 0
     assert no_nicol == []
     table = (out / "table.md").read_text()
     # last 2 epochs per seed: planar proprio 0.6, 0.8; planar multimodal 0.3, 0.4; ur5 proprio 1.0, 0.5
     assert "| agent | planar_reach (3 epochs) | ur5_reach (3 epochs) |" in table
-    assert "| proprio_baseline | 0.700 ± 0.100, 30 s | 0.750 ± 0.250, 30 s |" in table
-    assert "| multimodal_bidal | 0.350 ± 0.050, 20 s, epoch 2 of 3 | — |" in table
-    assert "Total wall time of the runs: 80 s (1.3 min)." in table
+    # runs recorded before wall_time_with_compile show their wall_time, marked; the other its time with compile
+    assert "| proprio_baseline | 0.700 ± 0.100, 30 s* | 0.750 ± 0.250, 30 s* |" in table
+    assert "| multimodal_bidal | 0.350 ± 0.050, 80 s, epoch 2 of 3 | — |" in table
+    assert "Total wall time of the runs: 140 s (2.3 min)." in table
     assert "Missing: ur5_reach/multimodal_bidal. Unfinished: planar_reach/multimodal_bidal (epoch 2 of 3)." in table
     with open(out / "curves.png", "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"

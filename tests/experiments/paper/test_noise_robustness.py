@@ -22,8 +22,8 @@ def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, c
     assert os.path.isfile(os.path.join(out, "curves.png")) and os.path.isfile(os.path.join(out, "curves.csv"))
     run_dir = os.path.join(out, "proprio_baseline")
     trained = load_policy(run_dir)
-    assert trained.seeds == 6 and trained.run.seeds == 6
-    assert trained.train.noise_segments == "q"
+    assert trained.seeds == 6 and trained.config.run.seeds == 6
+    assert trained.config.train.noise_segments == "q"
     np.testing.assert_array_equal(noise.run_kappas(2), np.float32([0.05, 0.05, 0.10, 0.10, 0.15, 0.15]))
     capsys.readouterr()
     assert noise.main([*TINY, "--out", out]) == 0
