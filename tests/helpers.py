@@ -18,6 +18,8 @@ TINY = [
     "--env", "planar_reach", "--agent", "proprio_baseline", "--num-envs", "4", "--cycles-per-epoch", "2",
     "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--quiet",
 ]
+# 4 seeds, a checkpoint every epoch: the runs spread over devices and processes
+SHARDED = [*TINY, "--seeds", "4", "--checkpoint-every", "1"]
 TIMING = ("wall_time", "wall_time_with_compile", "env_steps_per_second")
 
 

@@ -14,9 +14,8 @@ from bidal_jax.config import TrainConfig
 from bidal_jax.run.devices import device_layout, seed_devices
 from experiments import run
 from tests.helpers import REPO, assert_same_metrics, rows
-from tests.helpers import TINY as TINY_RUN
+from tests.helpers import SHARDED as TINY
 
-TINY = [*TINY_RUN, "--seeds", "4", "--checkpoint-every", "1"]
 
 def test_seeds_spread_over_as_many_devices_as_divide_them():
     devices = [types.SimpleNamespace(process_index=0, name=f"d{i}") for i in range(4)]

@@ -11,13 +11,13 @@ import types
 
 import pytest
 
+from bidal_jax.config import ConfigError
 from bidal_jax.run import multihost
 from bidal_jax.run.devices import seed_devices
 from bidal_jax.run.policy import load_policy
-from bidal_jax.run.validate import ConfigError
 from experiments import run
-from tests.bidal_jax.run.test_devices import TINY
 from tests.helpers import REPO, assert_same_metrics, rows
+from tests.helpers import SHARDED as TINY
 
 SLURM = {"SLURM_JOB_ID": "7", "SLURM_STEP_NODELIST": "node[1-2]", "SLURM_NTASKS": "2", "SLURM_PROCID": "1",
          "SLURM_LOCALID": "0"}
