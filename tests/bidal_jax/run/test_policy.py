@@ -13,7 +13,7 @@ from bidal_jax.run.policy import load_policy
 from tests.helpers import FINISHED_EPOCHS as EPOCHS
 
 
-def test_load_policy_never_reads_the_buffer(finished, tmp_path, env):
+def test_load_policy_never_reads_the_buffer(finished, tmp_path):
     run_dir, _ = finished
     copy = str(tmp_path / "no_buffer")
     shutil.copytree(run_dir, copy)

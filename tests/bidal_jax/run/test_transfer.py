@@ -20,7 +20,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax.config import resolve
-from bidal_jax.run import checkpoint, preflight, transfer
+from bidal_jax.run import checkpoint, preflight, rundir, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 from experiments import run
@@ -176,6 +176,7 @@ def test_resume_keeps_the_transfer_fields_and_does_not_transfer_again(transferre
         {"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=True
     ).run
     assert (resumed.init_from, resumed.init_parts) == (source[1], ",".join(PARTS))
+    rundir.release(run_dir)  # prepare locked the run directory for this process's run
     assert_refused(
         ["--resume", "--run-dir", run_dir, "--init-from", source[0], "--quiet"],
         run_dir,
