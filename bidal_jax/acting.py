@@ -9,6 +9,8 @@ for everything that steps environments, evaluation, and loading a trained policy
 - `evaluate(env, policy, key, n_episodes)`: success at the last step of each episode.
 - `load_policy(run_dir, checkpoint=None)`: the acting parameters of a run's checkpoint,
   restored with Orbax partial restore; the replay buffer is never read.
+- `load_noise(run_dir, trained)`: κ and σ of the observation noise (paper Eq. 9) that the
+  checkpoint's own evaluation saw, for a run trained with noise.
 
 A policy is any function `policy(obs, x) -> action` of a batched observation dict
 (`proprio` [N, D], `image` [N, 42, 42, 1], `achieved_goal`, `desired_goal` [N, G]) and the
@@ -24,11 +26,12 @@ import functools
 import os
 from typing import Any, Callable, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from bidal_jax import checkpoint, config as config_lib, normalizer
+from bidal_jax import checkpoint, config as config_lib, noise, normalizer
 from bidal_jax.config import AgentSpec, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
 
@@ -256,3 +259,22 @@ def load_policy(run_dir: str, checkpoint_step: int | str | None = None) -> Train
         goal_norm=normalizer.NormalizerState(**restored["goal_norm"]),
     )
     return TrainedPolicy(run, train, network, agent, networks, params, jnp.asarray(restored["eval_key"]), step)
+
+
+def load_noise(run_dir: str, trained: TrainedPolicy) -> noise.NoiseState | None:
+    """κ [S] and σ [S, F] of the observation noise (paper Eq. 9) at `trained`'s checkpoint, or None
+    for a run trained without noise (empty `noise_segments`). Training saves the noise state its
+    evaluation of that epoch used, so evaluating with it and `eval_key` reproduces the logged
+    success. Orbax partial restore of the `noise` leaves alone. Raises `CheckpointError`."""
+    if not noise.parse_segments(trained.train.noise_segments):
+        return None
+    directory = os.path.join(run_dir, "checkpoints")
+    saved = checkpoint.read_metadata(directory, trained.step, ("state",))["state"]
+    if "noise" not in saved:
+        raise checkpoint.CheckpointError(f"checkpoint {trained.step} in {directory} has no noise state "
+                                         f"although its config names noise segments {trained.train.noise_segments!r}")
+    restored = checkpoint.restore_partial(directory, trained.step, {"noise": saved["noise"]})["noise"]
+    state = noise.NoiseState(kappa=jnp.asarray(restored["kappa"]), sigma=jnp.asarray(restored["sigma"]))
+    chex.assert_shape(state.kappa, (trained.seeds,))
+    chex.assert_rank(state.sigma, 2)
+    return state

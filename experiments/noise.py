@@ -9,8 +9,13 @@ is data in the training state (run i has κ_{i // 5} and its own seed key).
 Writes into `--out` (default results/noise): one run directory per agent (`<agent>/`,
 metrics.csv with `eval_success_seed0..14`), `table.md` (the paper's Table II: per κ and
 agent, the mean over the 5 runs of each run's mean success over its last N epochs, N = 5 at
-5 % and 30 at 10 and 15 %, ± the std over the runs, beside the paper's figures), `curves.png`
-and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
+5 % and 30 at 10 and 15 %, ± the std over the runs, beside the paper's figures; a run with fewer
+epochs than its budget (`budget`: the env and agent preset's, or its config's if more) is marked
+"short run"; then the steadiness of claim (b): each run's std of its success over those N epochs,
+the mean over runs; and the command that regenerates it),
+`curves.png` and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
+`--report` trains nothing and writes only these, from the run folders (results/ keeps no
+checkpoints: training again there would start the runs afresh).
 
 Resumable: a finished agent is skipped, an interrupted one resumed from its latest
 checkpoint; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
@@ -26,6 +31,7 @@ import argparse
 import os
 import sys
 
+import chex
 import jax.numpy as jnp
 import numpy as np
 
@@ -35,6 +41,7 @@ from bidal_jax.validate import ConfigError
 from experiments import grid, plot, run as run_cli
 from experiments.grid import Arm
 
+PROG = "python -m experiments.noise"
 KAPPAS = (0.05, 0.10, 0.15)
 LAST_N = {0.05: 5, 0.10: 30, 0.15: 30}  # the paper's window per κ (Table II)
 AGENTS = ("multimodal_bidal", "multimodal_baseline", "proprio_baseline")
@@ -73,45 +80,86 @@ def kappa_curves(run: dict, runs: int) -> list[plot.Curve]:
     ]
 
 
-def table(curves: dict[tuple[float, str], plot.Curve]) -> str:
-    """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper."""
+def steadiness(curve: plot.Curve, last_n: int) -> np.ndarray:
+    """Each run's std (numpy's population std) of its success over its last min(last_n, E) epochs [R]:
+    how steady its learning is under noise (the paper's "mean standard deviation", Sec. IV-B, is their mean)."""
+    chex.assert_rank(curve.success, 2)
+    return curve.success[-last_n:].std(axis=0)
+
+
+def window_note(epochs: int, budget: int, last_n: int) -> str:
+    """" (19 epochs)", " (last 19 of 19 epochs)" when the run has fewer than the window, and "; short run:
+    19 of 40 epochs" added when it has fewer than its budget (its config's epochs)."""
+    window = f"last {epochs} of {epochs} epochs" if epochs < last_n else f"{epochs} epochs"
+    return f" ({window}" + (f"; short run: {epochs} of {budget} epochs" if epochs < budget else "") + ")"
+
+
+def table(curves: dict[tuple[float, str], plot.Curve], budgets: dict[str, int]) -> str:
+    """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper; then the
+    steadiness (`steadiness`, mean over runs) beside the paper's ±. `budgets`: each agent's epochs."""
     agents = [a for a in AGENTS if any(agent == a for _, agent in curves)]
     head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper"))]
-    rows = []
+    steady_head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper's ±"))]
+    rows, steady_rows = [], []
     for k in KAPPAS:
-        cells = [f"{k:.0%}", str(LAST_N[k])]
+        cells, steady = [f"{k:.0%}", str(LAST_N[k])], [f"{k:.0%}", str(LAST_N[k])]
         for a in agents:
             curve = curves.get((k, a))
             if curve is None:
                 cells.append("— ")
+                steady.append("— ")
             else:
-                mean, std, used = plot.final_success(curve, LAST_N[k])
-                partial = f" (last {used} of {len(curve.epoch)} epochs)" if used < LAST_N[k] else f" ({len(curve.epoch)} epochs)"
-                cells.append(f"{mean:.3f} ± {std:.4f}{partial}")
+                mean, std, _ = plot.final_success(curve, LAST_N[k])
+                cells.append(f"{mean:.3f} ± {std:.4f}{window_note(len(curve.epoch), budgets[a], LAST_N[k])}")
+                steady.append(f"{steadiness(curve, LAST_N[k]).mean():.4f}")
             cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
+            steady.append(f"{PAPER[k][a][1]:.4f}")
         rows.append(cells)
-    return plot.markdown_table(head, rows) + "\n"
+        steady_rows.append(steady)
+    return "\n".join([
+        plot.markdown_table(head, rows),
+        "",
+        "Steadiness: each run's std of its success over the same last N epochs, the mean over runs (paper "
+        "Sec. IV-B compares its ± as \"the mean standard deviation\" of the success rate; it does not say over what).",
+        "",
+        plot.markdown_table(steady_head, steady_rows),
+        "",
+    ])
 
 
-def report(out: str, runs: int) -> str:
-    """Write table.md, curves.png and curves.csv from the agents' run directories; return the table."""
-    found = {}
+def budget(run: dict) -> int:
+    """A run's epoch budget: its config's epochs, or its env and agent preset's (this experiment's default) if more."""
+    preset = config_lib.resolve({"env": run["env"], "agent": run["agent"]})[0].epochs
+    return max(int(run["config"]["run"].get("epochs", 0)), preset)
+
+
+def load_curves(out: str) -> tuple[dict[tuple[float, str], plot.Curve], dict[str, int]]:
+    """The noise runs in `out`: (κ, agent) -> its runs' curve (`kappa_curves`), and agent -> its epoch budget."""
+    found, budgets = {}, {}
     for agent in AGENTS:
         run_dir = os.path.join(out, agent)
         if os.path.isfile(os.path.join(run_dir, "metrics.csv")):
-            for k, curve in zip(KAPPAS, kappa_curves(plot.load_run(run_dir), runs)):
+            run = plot.load_run(run_dir)
+            budgets[agent] = budget(run)
+            for k, curve in zip(KAPPAS, kappa_curves(run, run["seeds"] // len(KAPPAS))):
                 found[k, agent] = curve
+    return found, budgets
+
+
+def report(out: str) -> str:
+    """Write table.md, curves.png and curves.csv from the agents' run directories; return the table."""
+    found, budgets = load_curves(out)
     if not found:
         return ""
     plot.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
-    text = table(found)
+    text = f"{table(found, budgets)}\nRegenerate from the run folders: `{PROG} --report --out {out}`\n"
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)
     return text
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m experiments.noise", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=os.path.join("results", "noise"), help="results folder")
     parser.add_argument("--env", default="nicol_slide", choices=envs_mjx.names())
     parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
@@ -121,6 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
     for name in SIZE_OPTIONS:
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=None, help="(default: the env preset's)")
+    parser.add_argument("--report", action="store_true", help="train nothing: write table.md, curves.png and "
+                        "curves.csv from the run folders in --out")
     parser.add_argument("--quiet", action="store_true")
     return parser
 
@@ -130,6 +180,9 @@ def main(argv: list[str] | None = None) -> int:
     given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
              **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
     given["epochs"] = args.epochs or config_lib.resolve(given)[0].epochs
+    if args.report:
+        print(report(args.out) or f"no noise runs in {args.out}: nothing written")
+        return 0
     if args.runs < 1:
         return grid.error(f"--runs {args.runs}: must be a positive integer", run_cli.EXIT_BAD_INPUT)
     try:
@@ -145,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     if code:
         return code
     if multihost.is_main():  # one process writes the results
-        print(report(args.out, args.runs))
+        print(report(args.out))
     return 0
 
 

@@ -22,6 +22,7 @@ from runs recorded before it); `with_compile_times(run)` gives the tables the la
 
 Python API, for the experiment scripts: `load_run(run_dir) -> dict`, `curves(runs, ...)`,
 `plot(curves, prefix, ...)`, `summary_table(runs, last_n, ...)`, `final_success(curve, last_n)`,
+`final_per_seed(curve, last_n)`,
 `time_to_threshold(curve, threshold)` and `normalized_auc(curve)`.
 
 Exit codes: 0 done; 2 a run directory without config.json or metrics.csv, or a bad option
@@ -175,10 +176,15 @@ def curves(
     ]
 
 
+def final_per_seed(curve: Curve, last_n: int) -> np.ndarray:
+    """Each seed's mean success over its last min(last_n, E) epochs [S]."""
+    return curve.success[-last_n:].mean(axis=0)
+
+
 def final_success(curve: Curve, last_n: int) -> tuple[float, float, int]:
     """(mean, std over seeds, epochs used) of each seed's mean success over its last
     min(last_n, E) epochs: the paper's "success rate over the last N epochs" (Table II)."""
-    per_seed = curve.success[-last_n:].mean(axis=0)
+    per_seed = final_per_seed(curve, last_n)
     return float(per_seed.mean()), float(per_seed.std()), min(last_n, len(curve.epoch))
 
 

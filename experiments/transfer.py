@@ -21,7 +21,10 @@ options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass t
 Then, from whatever runs have epochs, it writes `success.png` and `success.csv` (eval success
 against env steps per seed, mean ± std over seeds, both arms; `experiments/plot.py`) and
 `table.md` (env steps and wall time to 0.3 and 0.5 success, area under the curve, final
-success). Each run's metrics are its `metrics.csv`; times are its `wall_time_with_compile`
+success; for the difference transfer − scratch of AUC and of env steps to 0.3 and 0.5, per seed
+and censored at the run's total env steps where a seed never gets there, a 95 % bootstrap
+interval over seeds and Welch's t interval, `experiments/stats.py`; and the command that
+regenerates it). Each run's metrics are its `metrics.csv`; times are its `wall_time_with_compile`
 (compilation included), or its `wall_time` (compilation not counted, said in the table) for runs
 recorded before that column. The persistent compilation cache is not used: both arms' programs
 are identical, and the second would otherwise skip its compilation. The source's training time
@@ -48,10 +51,13 @@ import os
 import sys
 from typing import Any, Sequence
 
+import chex
+import numpy as np
+
 from bidal_jax import config as config_lib, multihost
 from bidal_jax.config import RunConfig
 from bidal_jax.validate import ConfigError
-from experiments import grid, plot, run as run_cli
+from experiments import grid, plot, run as run_cli, stats
 from experiments.grid import Arm
 
 PROG = "python -m experiments.transfer"
@@ -145,6 +151,65 @@ def results_table(curves: Sequence[plot.Curve], last_n: int) -> str:
     return plot.markdown_table(head, rows)
 
 
+def seed_steps_to(curve: plot.Curve, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per seed [S]: env steps per seed at the first epoch whose success (that seed's) is ≥ `threshold`,
+    censored at the run's last env steps for a seed that never reaches it; and which seeds were censored."""
+    chex.assert_rank(curve.success, 2)
+    reached = curve.success >= threshold
+    steps = np.where(reached.any(axis=0), curve.env_steps[reached.argmax(axis=0)], curve.env_steps[-1])
+    return steps, ~reached.any(axis=0)
+
+
+def seed_measures(curve: plot.Curve) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per-seed measures [S] of an arm, with which seeds are censored: AUC (mean success over the epochs)
+    and env steps to each of THRESHOLDS (`seed_steps_to`)."""
+    measures = {"AUC": (curve.success.mean(axis=0), np.zeros(curve.n_seeds, bool))}
+    return {**measures, **{f"env steps to {t:g}": seed_steps_to(curve, t) for t in THRESHOLDS}}
+
+
+def _arm_cell(values: np.ndarray, censored: np.ndarray, digits: int) -> str:
+    marks = f" ({censored.sum()} of {censored.size} censored*)" if censored.any() else ""
+    return f"{values.mean():,.{digits}f}{marks}"
+
+
+def difference_table(transfer: plot.Curve, scratch: plot.Curve) -> str:
+    """Markdown, one row per `seed_measures` measure: each arm's mean over seeds, transfer − scratch and its
+    95 % intervals over seeds (`stats.bootstrap_difference`, seeds resampled within each arm; Welch's t)."""
+    head = ["measure (per seed)", "transfer", "scratch", "transfer − scratch", "95 % bootstrap", "95 % Welch t"]
+    rows = []
+    for (name, (a, a_cut)), (b, b_cut) in zip(seed_measures(transfer).items(), seed_measures(scratch).values()):
+        digits = 3 if name == "AUC" else 0
+        diff, low, high = stats.bootstrap_difference([a], [b])
+        welch = stats.welch_interval(a, b)
+        rows.append([name, _arm_cell(a, a_cut, digits), _arm_cell(b, b_cut, digits), f"{diff:,.{digits}f}",
+                     stats.interval_text(low, high, digits), stats.interval_text(*welch[1:], digits)])
+    return plot.markdown_table(head, rows)
+
+
+def difference_notes(transfer: plot.Curve, scratch: plot.Curve) -> list[str]:
+    """The section of table.md on the difference between the arms."""
+    return [
+        "## Transfer − scratch, 95 % intervals over seeds",
+        "",
+        "Per seed: AUC is its mean success over the epochs run; env steps to a threshold are those of the first "
+        "epoch whose success (that seed's) is at least it. *A seed that never reaches a threshold is censored at "
+        "its run's total env steps, which understates its time. Bootstrap: "
+        f"{stats.RESAMPLES:,} resamples of the seeds within each arm (numpy Generator seed {stats.BOOTSTRAP_SEED}), "
+        "the 2.5th and 97.5th percentiles of the difference of means; Welch: scipy.stats.ttest_ind(equal_var=False)"
+        " (— where it is undefined: one seed, or no spread in either arm).",
+        "",
+        difference_table(transfer, scratch),
+        "",
+    ]
+
+
+def regenerate_command(args: argparse.Namespace, out: str) -> str:
+    """The command that rewrites table.md, success.png and success.csv from the run folders alone."""
+    options = [f"--out {out}", f"--seeds {args.seeds}" if args.seeds != 5 else "",
+               "--held-starts" if args.held_starts else "", f"--last-n {args.last_n}" if args.last_n != 10 else ""]
+    return " ".join([PROG, "--arms none", *filter(None, options)])
+
+
 def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
     """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
     loaded = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
@@ -165,6 +230,9 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
         results_table(curves, last_n),
         "",
     ]
+    by_label = {c.label: c for c in curves}
+    if {"transfer", "scratch"} <= set(by_label):
+        notes += difference_notes(by_label["transfer"], by_label["scratch"])
     source = grid.loaded(source_dir)
     if source is not None:
         notes.append(
@@ -190,7 +258,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     variant = ", held starts" if args.held_starts else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results
-        grid.write_table(out, plot_results(out, arms, source_dir(args, out), title, args.last_n))
+        text = plot_results(out, arms, source_dir(args, out), title, args.last_n)
+        command = regenerate_command(args, out)
+        grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
     return code
 
 
