@@ -145,6 +145,8 @@ class Env(abc.ABC):
         self.mj_model = mj_model
         # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
         self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
+        self.backend = "jax"
+        self._blank = mjx.make_data(self.mjx_model)
         self.n_substeps = int(round(n_substeps))
         self.episode_length = episode_length
         self.epsilon = epsilon
@@ -153,6 +155,39 @@ class Env(abc.ABC):
         self.render = render
         self.camera_name = camera_name
         self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0])
+
+    def use_backend(
+        self, backend: str, worlds: int = 1, contacts_per_world: int = 32, constraints_per_world: int = 128
+    ):
+        """Step this env's physics with MJX's `backend` ("jax" or "warp", MuJoCo Warp on an NVIDIA GPU).
+
+        Warp keeps one contact buffer for all worlds: `worlds` is the most envs stepped at once (envs × seeds)
+        and `contacts_per_world` sizes it (contacts beyond it are dropped); `constraints_per_world` is `njmax`."""
+        if backend == "jax":
+            self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
+            self._blank = mjx.make_data(self.mjx_model)
+        elif backend == "warp":
+            from mujoco.mjx.third_party.mujoco_warp import OverflowType
+
+            model = mjx.put_model(self.mj_model, impl="warp")
+            # the solver's iteration limit is the model's choice (assets/README.md), not an overflow to print
+            opt = model.opt.replace(
+                _impl=model.opt._impl.replace(
+                    warn_overflow=model.opt._impl.warn_overflow
+                    & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+                )
+            )
+            self.mjx_model = model.replace(opt=opt)
+            self._blank = mjx.make_data(
+                self.mj_model, impl="warp", naconmax=contacts_per_world * worlds, njmax=constraints_per_world
+            )
+        else:
+            raise ValueError(f"unknown physics backend {backend!r}; valid: jax, warp")
+        self.backend = backend
+
+    def blank_data(self) -> mjx.Data:
+        """A fresh `mjx.Data` of this env's backend, to be filled by `_reset_data`."""
+        return self._blank
 
     # ----- hooks for subclasses -------------------------------------------------------
     @abc.abstractmethod
@@ -260,8 +295,17 @@ class JointReachEnv(Env):
       camera_name, episode_length, epsilon, goal_size, render: as for `Env`.
     """
 
-    def __init__(self, mj_model, *, max_delta: float, goal_size: int, camera_name: str, episode_length: int,
-                 epsilon: float, render: bool):
+    def __init__(
+        self,
+        mj_model,
+        *,
+        max_delta: float,
+        goal_size: int,
+        camera_name: str,
+        episode_length: int,
+        epsilon: float,
+        render: bool,
+    ):
         n = mj_model.njnt
         super().__init__(
             mj_model,

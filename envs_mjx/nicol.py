@@ -46,7 +46,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from envs_mjx.base import Env, ObservationSpec, load_model
 
@@ -232,7 +231,7 @@ class NicolEnv(Env):
         goal = self._sample_goal(key_goal, cube_pos)
         qpos = self._home_qpos.at[self._cube_qpos : self._cube_qpos + 3].set(cube_pos)
         mocap_pos = self._home_mocap_pos.at[self._goal_mocap].set(goal)
-        data = mjx.make_data(self.mjx_model).replace(
+        data = self.blank_data().replace(
             qpos=qpos, mocap_pos=mocap_pos, mocap_quat=self._home_mocap_quat, ctrl=self._ctrl_low
         )
         return data, goal

@@ -11,7 +11,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import mujoco
-from mujoco import mjx
 
 from envs_mjx.base import JointReachEnv, load_model
 
@@ -48,7 +47,7 @@ class PlanarReach(JointReachEnv):
         key_start, key_goal = jax.random.split(key)
         q0 = self._sample_q(key_start)
         goal = forward_kinematics(self._sample_q(key_goal))
-        data = mjx.make_data(self.mjx_model)
+        data = self.blank_data()
         data = data.replace(
             qpos=q0,
             ctrl=q0,

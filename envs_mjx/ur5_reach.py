@@ -24,7 +24,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from envs_mjx.base import JointReachEnv, load_model
 
@@ -96,7 +95,7 @@ class UR5Reach(JointReachEnv):
         key_start, key_goal = jax.random.split(key)
         q0 = self.sample_configuration(key_start)
         goal = self.sample_configuration(key_goal)
-        data = mjx.make_data(self.mjx_model)
+        data = self.blank_data()
         data = data.replace(
             qpos=q0,
             ctrl=q0,

@@ -8,6 +8,12 @@ seed). By default the episodes are drawn from the checkpoint's own evaluation ke
 `--episodes` equal to the run's `eval_envs` the printed success is the one the run logged
 for that epoch; `--seed S` draws other episodes.
 
+A run trained with observation noise (paper Sec. IV-B, Eq. 9: `noise_segments`, κ per seed) is
+evaluated under it, as training's evaluation is: κ and σ are restored from the checkpoint
+(`bidal_jax.run.policy.load_noise`) and each step's noise is drawn as in training, so the logged success is
+reproduced too. `--clean` evaluates without noise; the output says which. The video's agent sees
+clean observations.
+
 `--video out.mp4` also renders `--video-episodes` episodes of seed 0 with MuJoCo's own
 renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view.
 
@@ -17,6 +23,7 @@ Exit codes: 0 done; 2 bad input (one `error: ...` line).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -26,10 +33,10 @@ import jax
 import numpy as np
 
 import envs_mjx
-from bidal_jax import acting
+from bidal_jax import acting, noise
 from bidal_jax.run.checkpoint import CheckpointError
-from bidal_jax.run.policy import TrainedPolicy, load_policy
-from experiments import cli
+from bidal_jax.run.policy import TrainedPolicy, load_noise, load_policy
+from experiments import cli, stats
 
 Z95 = 1.959963984540054
 
@@ -47,20 +54,33 @@ def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
     rates = success.mean(axis=1)
     if len(rates) == 1:
         return (float(rates[0]), *wilson_interval(int(success.sum()), success.size))
-    from scipy import stats
-
-    half = stats.t.ppf(0.975, len(rates) - 1) * rates.std(ddof=1) / math.sqrt(len(rates))
-    return float(rates.mean()), float(rates.mean() - half), float(rates.mean() + half)
+    return stats.student_interval(rates)
 
 
-def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int) -> np.ndarray:
-    """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training."""
+def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
+                   noise_state: noise.NoiseState | None = None) -> np.ndarray:
+    """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training; with
+    `noise_state` (κ [S], σ [S, F]) each seed sees its observation noise as training's evaluation does."""
+    indices = noise.feature_indices(env.observation_spec.proprio_segments,
+                                    noise.parse_segments(trained.config.train.noise_segments))
 
-    def one(params, key):
+    def one(params, key, seed_noise):
         policy = acting.make_policy(trained.networks, trained.config, params)
-        return acting.evaluate(env, policy, key, episodes)
+        observe = None if seed_noise is None else functools.partial(noise.observe, seed_noise, indices)
+        return acting.evaluate(env, policy, key, episodes, observe=observe)
 
-    return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys))
+    return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys, noise_state))
+
+
+def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, clean: bool) -> str:
+    """What the evaluated agents observed: the run's noise (κ per seed, σ restored) or clean observations."""
+    if not noise.parse_segments(trained.config.train.noise_segments):
+        return "observations: clean (the run trained without observation noise)"
+    if clean:
+        return f"observations: clean (--clean; the run trained with noise on {trained.config.train.noise_segments})"
+    kappas = ", ".join(f"{k:g}" for k in np.unique(np.asarray(noise_state.kappa)))
+    return (f"observations: noisy as in training's evaluation, κ {kappas} on {trained.config.train.noise_segments}, "
+            f"σ restored from checkpoint {trained.step} (paper Eq. 9)")
 
 
 def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
@@ -114,6 +134,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--video", default="", help="also write a video of seed 0's episodes to this .mp4")
     parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video")
     parser.add_argument("--video-size", default="320x240", help="MuJoCo render size WIDTHxHEIGHT (at least 320x240)")
+    parser.add_argument(
+        "--clean",
+        action="store_true",
+        help="evaluate without the run's observation noise "
+        "(default: a run trained with noise is evaluated under it, as training's evaluation is)",
+    )
     parser.add_argument("--json", default="", help="also write the results to this JSON file")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -142,6 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         if not os.path.isdir(args.run_dir):
             raise ValueError(f"--run-dir {args.run_dir}: no such directory")
         trained = load_policy(args.run_dir, args.checkpoint)
+        noise_state = None if args.clean else load_noise(args.run_dir, trained)
     except (ValueError, CheckpointError) as err:
         return cli.exit_code(err)
     run = trained.config.run
@@ -150,9 +177,11 @@ def main(argv: list[str] | None = None) -> int:
         keys = trained.eval_key
     else:
         keys = jax.random.split(jax.random.PRNGKey(args.seed), trained.seeds)
-    success = evaluate_seeds(env, trained, keys, args.episodes)
+    success = evaluate_seeds(env, trained, keys, args.episodes, noise_state)
     mean, low, high = mean_interval(success)
+    observed = noise_line(trained, noise_state, args.clean)
     print(f"{run.env} / {run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
+    print(observed)
     for i, row in enumerate(success):
         lo, hi = wilson_interval(int(row.sum()), row.size)
         print(f"seed {i}: success {row.mean():.3f} (95 % interval {lo:.3f}-{hi:.3f})")
@@ -166,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
                     "per_seed": success.mean(axis=1).tolist(),
                     "mean": mean,
                     "interval": [low, high],
+                    "observations": observed,
                 },
                 f,
                 indent=2,

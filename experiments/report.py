@@ -3,7 +3,7 @@
 - `load_run(run_dir)`: a run directory's `config.json` and `metrics.csv` as arrays.
 - `curves(runs, label_by, labels, panel_by)`: one `Curve` per run (per-seed eval success
   against epochs, env steps and wall time), labelled and grouped into panels.
-- `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
+- `final_per_seed`, `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
   (the paper's "success rate over the last N epochs", Table II).
 - `plot(curves, prefix)`: PREFIX.png (one panel per env or `panel_by` value, the seed mean
   with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
@@ -163,10 +163,15 @@ def curves(
     ]
 
 
+def final_per_seed(curve: Curve, last_n: int) -> np.ndarray:
+    """Each seed's mean success over its last min(last_n, E) epochs [S]."""
+    return curve.success[-last_n:].mean(axis=0)
+
+
 def final_success(curve: Curve, last_n: int) -> tuple[float, float, int]:
     """(mean, std over seeds, epochs used) of each seed's mean success over its last
     min(last_n, E) epochs: the paper's "success rate over the last N epochs" (Table II)."""
-    per_seed = curve.success[-last_n:].mean(axis=0)
+    per_seed = final_per_seed(curve, last_n)
     return float(per_seed.mean()), float(per_seed.std()), min(last_n, len(curve.epoch))
 
 

@@ -3,7 +3,8 @@
 Only what acting needs is read, with Orbax partial restore: the encoder and actor
 parameters, the normalisers and the evaluation key. The replay buffer, optimiser states and
 target networks are not, so a checkpoint whose buffer files were deleted still loads
-(`python -m experiments.evaluate` is its command line).
+(`python -m experiments.evaluate` is its command line). `load_noise` restores, for a run trained
+with observation noise, the κ and σ its checkpoint's evaluation saw (paper Eq. 9).
 """
 
 from __future__ import annotations
@@ -11,10 +12,11 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import chex
 import jax
 import jax.numpy as jnp
 
-from bidal_jax import normalizer
+from bidal_jax import noise, normalizer
 from bidal_jax.acting import ACTING_NETWORKS, ActingParams, Policy, make_policy
 from bidal_jax.config import Config
 from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
@@ -80,3 +82,23 @@ def load_policy(run_dir: str, checkpoint_step: int | str | None = None) -> Train
         goal_norm=normalizer.NormalizerState(**restored["goal_norm"]),
     )
     return TrainedPolicy(config, networks, params, jnp.asarray(restored["eval_key"]), step)
+
+
+def load_noise(run_dir: str, trained: TrainedPolicy) -> noise.NoiseState | None:
+    """κ [S] and σ [S, F] of the observation noise (paper Eq. 9) at `trained`'s checkpoint, or None
+    for a run trained without noise (empty `noise_segments`). Training saves the noise state its
+    evaluation of that epoch used, so evaluating with it and `eval_key` reproduces the logged
+    success. Orbax partial restore of the `noise` leaves alone. Raises `CheckpointError`."""
+    segments = trained.config.train.noise_segments
+    if not noise.parse_segments(segments):
+        return None
+    directory = os.path.join(run_dir, "checkpoints")
+    saved = checkpoint.read_metadata(directory, trained.step, ("state",))["state"]
+    if "noise" not in saved:
+        raise checkpoint.CheckpointError(f"checkpoint {trained.step} in {directory} has no noise state "
+                                         f"although its config names noise segments {segments!r}")
+    restored = checkpoint.restore_partial(directory, trained.step, {"noise": saved["noise"]})["noise"]
+    state = noise.NoiseState(kappa=jnp.asarray(restored["kappa"]), sigma=jnp.asarray(restored["sigma"]))
+    chex.assert_shape(state.kappa, (trained.seeds,))
+    chex.assert_rank(state.sigma, 2)
+    return state

@@ -57,11 +57,9 @@ from bidal_jax.run import multihost
 from experiments import cli, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
+from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per task, for every agent
 
 PROG = "python -m experiments.paper.curves"
-# the budget: epochs per task, the same for every agent of the task (module docstring)
-EPOCHS = {"planar_reach": 40, "ur5_reach": 30, "nicol_slide": 100, "nicol_lift": 100}
-TASKS = tuple(EPOCHS)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
 # one H200, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline)

@@ -22,7 +22,10 @@ options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass t
 Then, from whatever runs have epochs, it writes `success.png` and `success.csv` (eval success
 against env steps per seed, mean ± std over seeds, both arms; `experiments/report.py`) and
 `table.md` (env steps and wall time to 0.3 and 0.5 success, area under the curve, final
-success). Each run's metrics are its `metrics.csv`; times are its `wall_time_with_compile`
+success; for the difference transfer − scratch of AUC and of env steps to 0.3 and 0.5, per seed
+and censored at the run's total env steps where a seed never gets there, a 95 % bootstrap
+interval over seeds and Welch's t interval, `experiments/stats.py`; and the command that
+regenerates it). Each run's metrics are its `metrics.csv`; times are its `wall_time_with_compile`
 (compilation included), or its `wall_time` (compilation not counted, said in the table) for runs
 recorded before that column. The persistent compilation cache is not used: both arms' programs
 are identical, and the second would otherwise skip its compilation. The source's training time
@@ -49,53 +52,38 @@ import os
 import sys
 from typing import Any, Sequence
 
+import numpy as np
+
 from bidal_jax.config import ConfigError, RunConfig, resolve
 from bidal_jax.run import multihost
-from experiments import cli, report
+from experiments import cli, report, stats
 from experiments.paper import grid
 from experiments.paper.grid import Arm
+from experiments.paper.protocol import AGENT, SOURCE_ENV, TARGET_ENV, THRESHOLDS, seed_measures
 
 PROG = "python -m experiments.paper.transfer_learning"
-SOURCE_ENV, TARGET_ENV, AGENT = "nicol_slide", "nicol_lift_reduced", "multimodal_bidal"
 HELD_STARTS = 0.5
-THRESHOLDS = (0.3, 0.5)
 ARMS = ("source", "transfer", "scratch")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = grid.experiment_parser(PROG, __doc__, "all three runs")
-    parser.add_argument(
-        "--out",
-        default=None,
-        help="output folder (default results/transfer, or results/transfer-held with --held-starts)",
-    )
-    parser.add_argument(
-        "--source",
-        default=None,
-        metavar="RUN_DIR",
-        help="a nicol_slide run to transfer from instead of training OUT/source",
-    )
-    parser.add_argument(
-        "--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' (default: the latest)"
-    )
+    parser.add_argument("--out", default=None, help="output folder (default results/transfer, or results/transfer-held "
+                        "with --held-starts)")
+    parser.add_argument("--source", default=None, metavar="RUN_DIR", help="a nicol_slide run to transfer from "
+                        "instead of training OUT/source")
+    parser.add_argument("--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' "
+                        "(default: the latest)")
     parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source (default: its preset)")
     parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: preset)")
     parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped (the source needs as many)")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
-    parser.add_argument(
-        "--held-starts",
-        action="store_true",
-        help=f"both arms start {HELD_STARTS:g} of their "
-        "training episodes with the cube held (a labelled variant; the paper has none)",
-    )
-    parser.add_argument(
-        "--arms",
-        default=",".join(ARMS),
-        help="the runs this command trains, a comma list of "
-        f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
-        "runs can be trained by separate processes at once; 'none' only writes the results",
-    )
+    parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
+                        "training episodes with the cube held (a labelled variant; the paper has none)")
+    parser.add_argument("--arms", default=",".join(ARMS), help="the runs this command trains, a comma list of "
+                        f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
+                        "runs can be trained by separate processes at once; 'none' only writes the results")
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
@@ -158,6 +146,49 @@ def results_table(curves: Sequence[report.Curve], last_n: int) -> str:
     return report.markdown_table(head, rows)
 
 
+def _arm_cell(values: np.ndarray, censored: np.ndarray, digits: int) -> str:
+    marks = f" ({censored.sum()} of {censored.size} censored*)" if censored.any() else ""
+    return f"{values.mean():,.{digits}f}{marks}"
+
+
+def difference_table(transfer: report.Curve, scratch: report.Curve) -> str:
+    """Markdown, one row per `seed_measures` measure: each arm's mean over seeds, transfer − scratch and its
+    95 % intervals over seeds (`stats.bootstrap_difference`, seeds resampled within each arm; Welch's t)."""
+    head = ["measure (per seed)", "transfer", "scratch", "transfer − scratch", "95 % bootstrap", "95 % Welch t"]
+    rows = []
+    for (name, (a, a_cut)), (b, b_cut) in zip(seed_measures(transfer).items(), seed_measures(scratch).values()):
+        digits = 3 if name == "AUC" else 0
+        diff, low, high = stats.bootstrap_difference([a], [b])
+        welch = stats.welch_interval(a, b)
+        rows.append([name, _arm_cell(a, a_cut, digits), _arm_cell(b, b_cut, digits), f"{diff:,.{digits}f}",
+                     stats.interval_text(low, high, digits), stats.interval_text(*welch[1:], digits)])
+    return report.markdown_table(head, rows)
+
+
+def difference_notes(transfer: report.Curve, scratch: report.Curve) -> list[str]:
+    """The section of table.md on the difference between the arms."""
+    return [
+        "## Transfer − scratch, 95 % intervals over seeds",
+        "",
+        "Per seed: AUC is its mean success over the epochs run; env steps to a threshold are those of the first "
+        "epoch whose success (that seed's) is at least it. *A seed that never reaches a threshold is censored at "
+        "its run's total env steps, which understates its time. Bootstrap: "
+        f"{stats.RESAMPLES:,} resamples of the seeds within each arm (numpy Generator seed {stats.BOOTSTRAP_SEED}), "
+        "the 2.5th and 97.5th percentiles of the difference of means; Welch: scipy.stats.ttest_ind(equal_var=False)"
+        " (— where it is undefined: one seed, or no spread in either arm).",
+        "",
+        difference_table(transfer, scratch),
+        "",
+    ]
+
+
+def regenerate_command(args: argparse.Namespace, out: str) -> str:
+    """The command that rewrites table.md, success.png and success.csv from the run folders alone."""
+    options = [f"--out {out}", f"--seeds {args.seeds}" if args.seeds != 5 else "",
+               "--held-starts" if args.held_starts else "", f"--last-n {args.last_n}" if args.last_n != 10 else ""]
+    return " ".join([PROG, "--arms none", *filter(None, options)])
+
+
 def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
     """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
     loaded = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
@@ -178,6 +209,9 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
         results_table(curves, last_n),
         "",
     ]
+    by_label = {c.label: c for c in curves}
+    if {"transfer", "scratch"} <= set(by_label):
+        notes += difference_notes(by_label["transfer"], by_label["scratch"])
     source = grid.loaded(source_dir)
     if source is not None:
         notes.append(
@@ -203,7 +237,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     variant = ", held starts" if args.held_starts else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results
-        grid.write_table(out, plot_results(out, arms, source_dir(args, out), title, args.last_n))
+        text = plot_results(out, arms, source_dir(args, out), title, args.last_n)
+        command = regenerate_command(args, out)
+        grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
     return code
 
 

@@ -15,7 +15,7 @@ import envs_mjx
 from bidal_jax import acting
 from envs_mjx import nicol
 from envs_mjx.nicol import NicolLift, NicolSlide
-from experiments.probes.scripted import run_episodes
+from experiments.probes.grasping import run_episodes
 
 TASKS_SEGMENTS = (
     ("ee_pos", 3), ("ee_rot", 3), ("obj_pos", 3), ("obj_rot", 3), ("obj_rel_pos", 3),

@@ -46,6 +46,11 @@ def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_n
         "| scratch | 2 | 3 | 300 | 300 (epoch 3) | 30 s | not reached | not reached | 0.200 | 0.250 ± 0.050 |" in table
     )
     assert "Source: nicol_slide multimodal_bidal" in table and "2 epochs, 200 env steps per seed, 20 s" in table
+    assert "| AUC | 0.500 | 0.200 | 0.300 |" in table  # transfer − scratch (tests/experiments/test_stats.py)
+    assert (
+        f"Regenerate from the run folders: `python -m experiments.paper.transfer_learning --arms none --out {out} "
+        "--seeds 2 --last-n 2`" in table
+    )
     with open(out / "success.png", "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
     with open(out / "success.csv", newline="") as f:

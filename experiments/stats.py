@@ -1,0 +1,76 @@
+"""95 % intervals over seeds for the experiments' tables: a Student-t interval of a mean, and for the
+difference of two arms' means (A − B) a percentile bootstrap over seeds and Welch's t interval.
+
+The paper (Sec. IV) reports means and standard deviations over runs without intervals; these say how
+far our few seeds (5 a run) pin a figure or a difference down. All are pure functions of their inputs:
+the bootstrap draws from a numpy Generator of a fixed seed.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+LEVEL = 0.95
+RESAMPLES = 10_000
+BOOTSTRAP_SEED = 0
+
+
+def _sample(values: np.ndarray, name: str) -> np.ndarray:
+    values = np.asarray(values, np.float64)
+    if values.ndim != 1 or values.size == 0 or not np.isfinite(values).all():
+        raise ValueError(f"{name}: expected a non-empty 1-D array of finite values, got shape {values.shape}")
+    return values
+
+
+def student_interval(values: np.ndarray) -> tuple[float, float, float]:
+    """(mean, low, high): the 95 % Student-t interval of the mean of `values` [S]; (mean, nan, nan) for one value."""
+    from scipy import stats
+
+    values = _sample(values, "values")
+    mean = float(values.mean())
+    if values.size < 2:
+        return mean, math.nan, math.nan
+    half = stats.t.ppf(0.5 + LEVEL / 2, values.size - 1) * values.std(ddof=1) / math.sqrt(values.size)
+    return mean, float(mean - half), float(mean + half)
+
+
+def bootstrap_difference(a: Sequence[np.ndarray], b: Sequence[np.ndarray], resamples: int = RESAMPLES,
+                         seed: int = BOOTSTRAP_SEED) -> tuple[float, float, float]:
+    """(difference, low, high) of mean(A) − mean(B), each arm's statistic the mean over its groups
+    (e.g. tasks; one group for one run) of the group's mean over seeds; the 95 % percentile interval of
+    `resamples` bootstrap replicates that resample the seeds of every group with replacement."""
+    if not a or not b:
+        raise ValueError("bootstrap_difference: each arm needs at least one group of seeds")
+    a = [_sample(group, f"arm A, group {i}") for i, group in enumerate(a)]
+    b = [_sample(group, f"arm B, group {i}") for i, group in enumerate(b)]
+    rng = np.random.default_rng(seed)
+
+    def replicates(groups: Sequence[np.ndarray]) -> np.ndarray:
+        return np.mean([g[rng.integers(0, g.size, (resamples, g.size))].mean(axis=1) for g in groups], axis=0)
+
+    point = float(np.mean([g.mean() for g in a]) - np.mean([g.mean() for g in b]))
+    low, high = np.percentile(replicates(a) - replicates(b), [50 * (1 - LEVEL), 50 * (1 + LEVEL)])
+    return point, float(low), float(high)
+
+
+def welch_interval(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
+    """(difference, low, high) of mean(a) − mean(b) with Welch's 95 % t interval (scipy.stats); the
+    interval is (nan, nan) when an arm has one seed or neither arm varies."""
+    from scipy import stats
+
+    a, b = _sample(a, "a"), _sample(b, "b")
+    point = float(a.mean() - b.mean())
+    if min(a.size, b.size) < 2 or (np.ptp(a) == 0 and np.ptp(b) == 0):
+        return point, math.nan, math.nan
+    low, high = stats.ttest_ind(a, b, equal_var=False).confidence_interval(LEVEL)
+    return point, float(low), float(high)
+
+
+def interval_text(low: float, high: float, digits: int = 3) -> str:
+    """"[low, high]", or "—" for an undefined interval."""
+    if math.isnan(low) or math.isnan(high):
+        return "—"
+    return f"[{low:,.{digits}f}, {high:,.{digits}f}]"
