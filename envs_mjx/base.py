@@ -146,7 +146,7 @@ class Env(abc.ABC):
         # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
         self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
         self.backend = "jax"
-        self._blank = mjx.make_data(self.mjx_model)
+        self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
         self.n_substeps = int(round(n_substeps))
         self.episode_length = episode_length
         self.epsilon = epsilon
@@ -165,7 +165,7 @@ class Env(abc.ABC):
         and `contacts_per_world` sizes it (contacts beyond it are dropped); `constraints_per_world` is `njmax`."""
         if backend == "jax":
             self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
-            self._blank = mjx.make_data(self.mjx_model)
+            self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
         elif backend == "warp":
             from mujoco.mjx.third_party.mujoco_warp import OverflowType
 
