@@ -1,16 +1,14 @@
 """Acting: the policy as a function of (parameters, normalisers, observation), one rollout
-for everything that steps environments, evaluation, and loading a trained policy.
+for everything that steps environments, and evaluation.
 
-- `make_policy(networks, agent, config, params, explore=False)`: the DDPG actor μ(ψ(s), η(g))
+- `make_policy(networks, config, params, explore=False)`: the DDPG actor μ(ψ(s), η(g))
   (paper Eq. 7) on normalised inputs; exploring adds Gaussian noise and ε-random actions.
 - `rollout(env, policy, key, n_envs)`: `n_envs` vmapped envs stepped by `policy` for one
   episode (or `steps`) inside one `lax.scan`. Training, evaluation, the benchmark, the
   scripted NICOL controller and the tests all step envs through it.
 - `evaluate(env, policy, key, n_episodes)`: success at the last step of each episode.
-- `load_policy(run_dir, checkpoint=None)`: the acting parameters of a run's checkpoint,
-  restored with Orbax partial restore; the replay buffer is never read.
-- `load_noise(run_dir, trained)`: κ and σ of the observation noise (paper Eq. 9) that the
-  checkpoint's own evaluation saw, for a run trained with noise.
+
+Loading a trained policy from a checkpoint is the run machinery's (`bidal_jax.run.policy`).
 
 A policy is any function `policy(obs, x) -> action` of a batched observation dict
 (`proprio` [N, D], `image` [N, 42, 42, 1], `achieved_goal`, `desired_goal` [N, G]) and the
@@ -21,19 +19,16 @@ sees an env only through its functional API (`reset`, `step`, `episode_length`,
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import os
 from typing import Any, Callable, NamedTuple
 
-import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
 
-from bidal_jax import checkpoint, config as config_lib, noise, normalizer
-from bidal_jax.config import AgentSpec, NetworkConfig, RunConfig, TrainConfig
-from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
+from bidal_jax import normalizer
+from bidal_jax.config import Config
+from bidal_jax.networks import Networks
 
 Policy = Callable[[dict, Any], jax.Array]
 # what the agent observes of a state: observe(obs, key) -> obs (e.g. with sensor noise)
@@ -51,8 +46,6 @@ class Step(NamedTuple):
 
 # what a rollout records per step: record(step) -> pytree
 Recorder = Callable[[Step], Any]
-# the part of a training state that acting needs (all that `load_policy` reads)
-ACTING_FIELDS = ("params", "proprio_norm", "goal_norm", "eval_key")
 ACTING_NETWORKS = ("encoder", "actor")
 
 
@@ -74,28 +67,28 @@ def acting_params(state: Any) -> ActingParams:
     )
 
 
-def make_policy(
-    networks: Networks, agent: AgentSpec, config: TrainConfig, params: ActingParams, explore: bool = False
-) -> Policy:
+def make_policy(networks: Networks, config: Config, params: ActingParams, explore: bool = False) -> Policy:
     """The policy μ(ψ(s), η(g)) of `params` (paper Eq. 7), on batched observations.
 
-    Proprio and goals are normalised (clipped to ±`config.clip_obs`) as in training. With
+    Proprio and goals are normalised (clipped to ±`train.clip_obs`) as in training. With
     `explore`, actions get Gaussian noise of std `noise_eps` (then clipped to [-1, 1]) and
     are replaced by uniform random actions with probability `random_eps` (HER's exploration);
     the policy's input `x` must then be a PRNG key.
     """
+    uses_image, train = config.agent.uses_image, config.train
 
     def act(obs: dict, x: Any) -> jax.Array:
-        image = obs["image"] if agent.uses_image else None
-        proprio = normalizer.normalize(params.proprio_norm, obs["proprio"], config.clip_obs)
-        goal = normalizer.normalize(params.goal_norm, obs["desired_goal"], config.clip_obs)
-        action = networks.actor(params.params["actor"], networks.encode(params.params.get("encoder"), image, proprio), goal)
+        image = obs["image"] if uses_image else None
+        proprio = normalizer.normalize(params.proprio_norm, obs["proprio"], train.clip_obs)
+        goal = normalizer.normalize(params.goal_norm, obs["desired_goal"], train.clip_obs)
+        phi = networks.encode(params.params.get("encoder"), image, proprio)
+        action = networks.actor(params.params["actor"], phi, goal)
         if not explore:
             return action
         key_noise, key_random, key_pick = jax.random.split(x, 3)
-        action = jnp.clip(action + config.noise_eps * jax.random.normal(key_noise, action.shape), -1.0, 1.0)
+        action = jnp.clip(action + train.noise_eps * jax.random.normal(key_noise, action.shape), -1.0, 1.0)
         random_action = jax.random.uniform(key_random, action.shape, minval=-1.0, maxval=1.0)
-        pick = jax.random.uniform(key_pick, (action.shape[0], 1)) < config.random_eps
+        pick = jax.random.uniform(key_pick, (action.shape[0], 1)) < train.random_eps
         return jnp.where(pick, random_action, action)
 
     return act
@@ -188,93 +181,10 @@ def rollout(
 
 
 def evaluate(
-    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None, observe: Observer | None = None
+    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None,
+    observe: Observer | None = None,
 ) -> jax.Array:
     """Success (paper Eq. 6 at the episode's last step, on the true state) of `policy` in each of
     `n_episodes` episodes from `env.reset`, or from the given batched `states`; float32 [n_episodes]."""
     final, _ = rollout(env, policy, key, n_episodes, states=states, observe=observe)
     return final.metrics["success"]
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainedPolicy:
-    """A trained agent as `load_policy` restores it; array leaves carry a leading seed axis [S].
-
-    `policy(seed)` is the deterministic policy of one seed; `eval_key[seed]` is the key of
-    that seed's evaluation at this checkpoint, so that `evaluate(env, policy(seed),
-    eval_key[seed], train.eval_envs)` reproduces the run's logged eval success.
-    """
-
-    run: RunConfig
-    train: TrainConfig
-    network: NetworkConfig
-    agent: AgentSpec
-    networks: Networks
-    params: ActingParams
-    eval_key: jax.Array
-    step: int
-
-    @property
-    def seeds(self) -> int:
-        return int(self.eval_key.shape[0])
-
-    def seed_params(self, seed: int) -> ActingParams:
-        return jax.tree.map(lambda x: x[seed], self.params)
-
-    def policy(self, seed: int = 0, explore: bool = False) -> Policy:
-        return make_policy(self.networks, self.agent, self.train, self.seed_params(seed), explore)
-
-
-def _sizes(state: dict) -> dict:
-    """The env facts that applying the networks needs, from a checkpoint's array metadata (no
-    array is read); the image shape only matters to `init`, which acting never calls."""
-    return {
-        "proprio_size": int(state["proprio_norm"]["mean"].shape[-1]),
-        "goal_size": int(state["goal_norm"]["mean"].shape[-1]),
-        "action_size": int(state["params"]["actor"]["params"][ACTION_LAYER]["bias"].shape[-1]),
-        "image_shape": None,
-    }
-
-
-def load_policy(run_dir: str, checkpoint_step: int | str | None = None) -> TrainedPolicy:
-    """The acting parameters of a run: latest checkpoint, step N, or "best" (by eval success).
-
-    Only the encoder and actor parameters, the normalisers and the evaluation key are read
-    (Orbax partial restore); the replay buffer, optimiser states and target networks are not,
-    so a checkpoint whose buffer files were deleted still loads. Raises `CheckpointError`.
-    """
-    directory = os.path.join(run_dir, "checkpoints")
-    step = checkpoint.resolve_step(directory, checkpoint_step)
-    saved_config = checkpoint.read_config(directory, step)
-    run, train, network = config_lib.from_dict(saved_config, f"checkpoint {step} in {directory}")
-    agent = config_lib.agent_spec(run.agent)
-    saved = checkpoint.read_metadata(directory, step, ("state",))["state"]
-    networks = make_networks(agent, network, **_sizes(saved))
-    wanted = {name: saved[name] for name in ACTING_FIELDS}
-    wanted["params"] = {k: v for k, v in saved["params"].items() if k in ACTING_NETWORKS}
-    restored = checkpoint.restore_partial(directory, step, wanted)
-    params = ActingParams(
-        params=restored["params"],
-        proprio_norm=normalizer.NormalizerState(**restored["proprio_norm"]),
-        goal_norm=normalizer.NormalizerState(**restored["goal_norm"]),
-    )
-    return TrainedPolicy(run, train, network, agent, networks, params, jnp.asarray(restored["eval_key"]), step)
-
-
-def load_noise(run_dir: str, trained: TrainedPolicy) -> noise.NoiseState | None:
-    """κ [S] and σ [S, F] of the observation noise (paper Eq. 9) at `trained`'s checkpoint, or None
-    for a run trained without noise (empty `noise_segments`). Training saves the noise state its
-    evaluation of that epoch used, so evaluating with it and `eval_key` reproduces the logged
-    success. Orbax partial restore of the `noise` leaves alone. Raises `CheckpointError`."""
-    if not noise.parse_segments(trained.train.noise_segments):
-        return None
-    directory = os.path.join(run_dir, "checkpoints")
-    saved = checkpoint.read_metadata(directory, trained.step, ("state",))["state"]
-    if "noise" not in saved:
-        raise checkpoint.CheckpointError(f"checkpoint {trained.step} in {directory} has no noise state "
-                                         f"although its config names noise segments {trained.train.noise_segments!r}")
-    restored = checkpoint.restore_partial(directory, trained.step, {"noise": saved["noise"]})["noise"]
-    state = noise.NoiseState(kappa=jnp.asarray(restored["kappa"]), sigma=jnp.asarray(restored["sigma"]))
-    chex.assert_shape(state.kappa, (trained.seeds,))
-    chex.assert_rank(state.sigma, 2)
-    return state

@@ -1,19 +1,63 @@
 """Configuration: frozen dataclasses, one per concern, with agent presets by name.
 
 Every field carries its documentation in `metadata["help"]`, which is also what the
-command line shows for it (`experiments/run.py --help`). Command lines only override
-fields; nothing mutates a config after construction (use `dataclasses.replace`).
+command line shows for it (`python -m experiments.run --help`), and the rule of its valid
+values in `metadata["rule"]`, beside it (`bidal_jax.run.validate` reads them). Command lines
+only override fields; nothing mutates a config after construction (use `dataclasses.replace`).
+A run's three configs travel together as one `Config`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 
-def doc(default: Any, help: str) -> Any:  # noqa: A002 - "help" reads best at call sites
-    """A dataclass field with a default and its documentation."""
-    return dataclasses.field(default=default, metadata={"help": help})
+class ConfigError(ValueError):
+    """A config value that a run cannot use; the message is one line."""
+
+
+def option(field: str) -> str:
+    """The command-line option of a config field: `num_envs` -> `--num-envs`."""
+    return "--" + field.replace("_", "-")
+
+
+@dataclasses.dataclass(frozen=True)
+class Rule:
+    """The valid values of a config field: its type, a predicate, and the words that say what is allowed."""
+
+    kind: type
+    allowed: Callable[[Any], bool]
+    what: str
+
+
+def text(what: str) -> Rule:
+    """Any string (its meaning is checked elsewhere, e.g. an env name against the registry)."""
+    return Rule(str, lambda v: True, what)
+
+
+def _strides(v: str) -> bool:
+    try:
+        parse_strides(v)
+    except ValueError:
+        return False
+    return True
+
+
+def _name_list(v: str) -> bool:
+    names = [name.strip() for name in v.split(",")]
+    return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
+
+
+POSITIVE_INT = Rule(int, lambda v: v >= 1, "a positive integer")
+POSITIVE = Rule(float, lambda v: v > 0, "a positive number")
+NON_NEGATIVE = Rule(float, lambda v: v >= 0, "a number >= 0")
+PROBABILITY = Rule(float, lambda v: 0 <= v <= 1, "a probability in [0, 1]")
+
+
+def doc(default: Any, help: str, rule: Rule) -> Any:  # noqa: A002 - "help" reads best at call sites
+    """A dataclass field with a default, its documentation and the rule of its valid values."""
+    return dataclasses.field(default=default, metadata={"help": help, "rule": rule})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,19 +88,20 @@ def agent_spec(name: str) -> AgentSpec:
 class NetworkConfig:
     """Sizes of the networks (paper Sec. III-B and III-C)."""
 
-    conv_channels: int = doc(16, "channels of each of the four conv layers of the vision branch")
+    conv_channels: int = doc(16, "channels of each of the four conv layers of the vision branch", POSITIVE_INT)
     conv_strides: str = doc(
         "3,2,2,2",
         "strides of the vision branch's four 3×3 conv layers, comma-separated (the first unpadded, the others "
         "'same'-padded): 3,2,2,2 maps 42×42 to 14, 7, 4, 2; 2,2,1,1 to 20, 10, 10, 10",
+        Rule(str, _strides, "four comma-separated positive integers, e.g. 3,2,2,2"),
     )
-    vision_features: int = doc(64, "width of the dense layer that ends the vision branch")
-    proprio_features: int = doc(64, "width of the proprio branch's dense layer")
-    latent_size: int = doc(50, "size of the latent state φ(s) of the multimodal encoder")
-    embed_size: int = doc(64, "width of the UVFA embeddings ψ(s) and η(g)")
-    hidden_size: int = doc(128, "width of the actor's and critic's hidden layers")
-    hidden_layers: int = doc(2, "number of hidden layers of the actor and the critic")
-    model_hidden_size: int = doc(128, "hidden width of the forward model f and inverse model g")
+    vision_features: int = doc(64, "width of the dense layer that ends the vision branch", POSITIVE_INT)
+    proprio_features: int = doc(64, "width of the proprio branch's dense layer", POSITIVE_INT)
+    latent_size: int = doc(50, "size of the latent state φ(s) of the multimodal encoder", POSITIVE_INT)
+    embed_size: int = doc(64, "width of the UVFA embeddings ψ(s) and η(g)", POSITIVE_INT)
+    hidden_size: int = doc(128, "width of the actor's and critic's hidden layers", POSITIVE_INT)
+    hidden_layers: int = doc(2, "number of hidden layers of the actor and the critic", POSITIVE_INT)
+    model_hidden_size: int = doc(128, "hidden width of the forward model f and inverse model g", POSITIVE_INT)
 
 
 def parse_strides(text: str) -> tuple[int, ...]:
@@ -72,69 +117,96 @@ def parse_strides(text: str) -> tuple[int, ...]:
 class TrainConfig:
     """The DDPG + HER learner and the BidAL models (paper Sec. III-C, Eqs. 4, 5, 8)."""
 
-    num_envs: int = doc(16, "parallel environments in each rollout of a cycle")
-    cycles_per_epoch: int = doc(10, "rollout/update cycles in one epoch")
-    updates_per_cycle: int = doc(40, "gradient updates after each cycle's rollout")
-    batch_size: int = doc(256, "transitions per gradient update")
-    buffer_episodes: int = doc(4096, "replay capacity in episodes (a multiple of num_envs)")
-    gamma: float = doc(0.98, "discount γ; the critic target is clipped to [r_min/(1-γ), 0] (losses.min_reward)")
-    tau: float = doc(0.05, "Polyak rate of the target networks, applied after every gradient update")
-    actor_lr: float = doc(1e-3, "Adam learning rate of the actor")
-    critic_lr: float = doc(1e-3, "Adam learning rate of the critic, encoder, forward and inverse models")
-    action_l2: float = doc(1.0, "weight of the actor's action L2 penalty")
-    noise_eps: float = doc(0.2, "std of the Gaussian exploration noise on actions")
-    random_eps: float = doc(0.3, "probability of a uniformly random exploration action")
+    num_envs: int = doc(16, "parallel environments in each rollout of a cycle", POSITIVE_INT)
+    cycles_per_epoch: int = doc(10, "rollout/update cycles in one epoch", POSITIVE_INT)
+    updates_per_cycle: int = doc(40, "gradient updates after each cycle's rollout", POSITIVE_INT)
+    batch_size: int = doc(256, "transitions per gradient update", POSITIVE_INT)
+    buffer_episodes: int = doc(4096, "replay capacity in episodes (a multiple of num_envs)", POSITIVE_INT)
+    gamma: float = doc(
+        0.98, "discount γ; the critic target is clipped to [r_min/(1-γ), 0] (losses.min_reward)",
+        Rule(float, lambda v: 0 < v < 1, "in (0, 1)"),
+    )
+    tau: float = doc(
+        0.05, "Polyak rate of the target networks, applied after every gradient update",
+        Rule(float, lambda v: 0 < v <= 1, "in (0, 1]"),
+    )
+    actor_lr: float = doc(1e-3, "Adam learning rate of the actor", POSITIVE)
+    critic_lr: float = doc(1e-3, "Adam learning rate of the critic, encoder, forward and inverse models", POSITIVE)
+    action_l2: float = doc(1.0, "weight of the actor's action L2 penalty", NON_NEGATIVE)
+    noise_eps: float = doc(0.2, "std of the Gaussian exploration noise on actions", NON_NEGATIVE)
+    random_eps: float = doc(0.3, "probability of a uniformly random exploration action", PROBABILITY)
     exploration_starts: float = doc(
         0.0,
         "fraction of training episodes begun by the env's exploration_reset (nicol_lift: the cube "
         "already held, as HER's pick-and-place); evaluation always begins from reset. The paper uses "
         "none (0, the default); 0.5 is the labelled 'held starts' variant of lifting",
+        PROBABILITY,
     )
     obs_noise: float = doc(
         0.0,
         "κ of the observation noise s + κ·N(0, σ), σ the interquartile range of each feature over the clean "
         "history (paper Eq. 9); it is data in the training state, so one compiled program serves every κ",
+        NON_NEGATIVE,
     )
     noise_segments: str = doc(
         "",
         "comma-separated proprio segments that get observation noise (the paper's: ee_pos,ee_rot,obj_pos); "
         "empty: no noise code at all",
+        text("comma-separated proprio segment names"),
     )
-    her_k: int = doc(4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)")
-    intrinsic_lambda: float = doc(0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)")
-    forward_weight: float = doc(1.0, "weight of the forward-model loss (Eq. 3) in the representation loss")
-    inverse_weight: float = doc(1.0, "weight of the inverse-model loss (Eq. 5) in the representation loss")
-    clip_obs: float = doc(5.0, "normalised proprio and goals are clipped to ±clip_obs")
-    eval_envs: int = doc(64, "deterministic evaluation episodes after each epoch")
-    grad_clip: float = doc(10.0, "global gradient-norm clip of every optimiser")
+    her_k: int = doc(
+        4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)",
+        Rule(int, lambda v: v >= 0, "an integer >= 0"),
+    )
+    intrinsic_lambda: float = doc(
+        0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)",
+        NON_NEGATIVE,
+    )
+    forward_weight: float = doc(
+        1.0, "weight of the forward-model loss (Eq. 3) in the representation loss",
+        NON_NEGATIVE,
+    )
+    inverse_weight: float = doc(
+        1.0, "weight of the inverse-model loss (Eq. 5) in the representation loss",
+        NON_NEGATIVE,
+    )
+    clip_obs: float = doc(5.0, "normalised proprio and goals are clipped to ±clip_obs", POSITIVE)
+    eval_envs: int = doc(64, "deterministic evaluation episodes after each epoch", POSITIVE_INT)
+    grad_clip: float = doc(10.0, "global gradient-norm clip of every optimiser", POSITIVE)
 
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """One run: which task, which agent, how long, where to write."""
 
-    env: str = doc("planar_reach", "environment name")
-    agent: str = doc("multimodal_bidal", "agent name")
-    seeds: int = doc(1, "seeds trained together as one vmapped program")
-    seed: int = doc(0, "first random seed; seeds use seed, seed+1, ...")
-    epochs: int = doc(20, "training epochs")
-    checkpoint_every: int = doc(5, "save a checkpoint every K epochs (and at the end)")
+    env: str = doc("planar_reach", "environment name", text("an env name"))
+    agent: str = doc("multimodal_bidal", "agent name", text("an agent name"))
+    seeds: int = doc(1, "seeds trained together as one vmapped program", POSITIVE_INT)
+    seed: int = doc(
+        0, "first random seed; seeds use seed, seed+1, ...",
+        Rule(int, lambda v: 0 <= v < 2**32, "an integer in [0, 2^32)"),
+    )
+    epochs: int = doc(20, "training epochs", POSITIVE_INT)
+    checkpoint_every: int = doc(5, "save a checkpoint every K epochs (and at the end)", POSITIVE_INT)
     env_shards: int = doc(
         1,
         "at most this many devices split each seed's envs (of the devices the seeds leave free; gradients "
-        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (README: Several devices)",
+        "averaged across them); 1: none. Tested on CPU devices; also runs on GPUs (docs/usage.md: Several devices)",
+        POSITIVE_INT,
     )
-    run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>")
-    target_success: float = doc(0.0, "stop early once the mean eval success reaches this (0: never)")
+    run_dir: str = doc("", "run directory; default runs/<env>-<agent>-<time>", text("a path"))
+    target_success: float = doc(0.0, "stop early once the mean eval success reaches this (0: never)", PROBABILITY)
     init_from: str = doc(
         "",
         "RUN_DIR or RUN_DIR:CHECKPOINT (step or best) whose parameters start this run (transfer, paper Sec. IV-C; "
-        "bidal_jax/transfer.py); empty: a fresh start. A resumed run continues its own checkpoint",
+        "bidal_jax/run/transfer.py); empty: a fresh start. A resumed run continues its own checkpoint",
+        text("RUN_DIR or RUN_DIR:CHECKPOINT"),
     )
     init_parts: str = doc(
         "encoder,forward,inverse",
         "comma-separated networks that --init-from restores, into the online and target networks (optimisers start "
         "fresh); the encoder brings its normalisers, its proprio rows matched by segment name",
+        Rule(str, _name_list, "comma-separated network names without repeats, e.g. encoder,forward,inverse"),
     )
 
 
@@ -148,7 +220,7 @@ def fields_help(cls: type) -> dict[str, str]:
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 40}},
     "ur5_reach": {"run": {"epochs": 15}},
-    # the NICOL tasks are sized for one GPU (README, "Results"): many parallel envs, big batches
+    # the NICOL tasks are sized for one GPU (docs/results.md): many parallel envs, big batches
     **{
         name: {
             "run": {"epochs": 100},
@@ -186,26 +258,40 @@ class ConfigFormatError(ValueError):
     """A stored config (config.json, a checkpoint's) that this version cannot read."""
 
 
-def to_dict(run: RunConfig, train: TrainConfig, network: NetworkConfig) -> dict[str, dict[str, Any]]:
-    """The three configs as JSON-ready {"run": {...}, "train": {...}, "network": {...}}."""
-    return {name: dataclasses.asdict(cfg) for name, cfg in zip(CONFIG_CLASSES, (run, train, network))}
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A run's three configs as one value; its JSON form is {"run": {...}, "train": {...}, "network": {...}}."""
+
+    run: RunConfig = RunConfig()
+    train: TrainConfig = TrainConfig()
+    network: NetworkConfig = NetworkConfig()
+
+    @property
+    def agent(self) -> AgentSpec:
+        """What the agent `run.agent` observes and learns; ValueError for an unknown name."""
+        return agent_spec(self.run.agent)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """The configs as JSON-ready {"run": {...}, "train": {...}, "network": {...}}."""
+        return {name: dataclasses.asdict(getattr(self, name)) for name in CONFIG_CLASSES}
+
+    @classmethod
+    def from_dict(cls, cfg: dict, where: str) -> Config:
+        """The inverse of `to_dict`; fields newer than `cfg` take their defaults. Raises
+        ConfigFormatError naming `where` for a dict that is not such a config."""
+        try:
+            return cls(**{name: group(**cfg[name]) for name, group in CONFIG_CLASSES.items()})
+        except (KeyError, TypeError) as err:
+            raise ConfigFormatError(f"{where} has a config this version cannot read ({err})") from err
 
 
-def from_dict(cfg: dict, where: str) -> tuple[RunConfig, TrainConfig, NetworkConfig]:
-    """The inverse of `to_dict`; fields newer than `cfg` take their defaults. Raises
-    ConfigFormatError naming `where` for a dict that is not such a config."""
-    try:
-        return tuple(cls(**cfg[name]) for name, cls in CONFIG_CLASSES.items())  # type: ignore[return-value]
-    except (KeyError, TypeError) as err:
-        raise ConfigFormatError(f"{where} has a config this version cannot read ({err})") from err
-
-
-def resolve(given: dict[str, Any]) -> tuple[RunConfig, TrainConfig, NetworkConfig]:
-    """The configs of a new run: defaults, then the env's (and image agent's) preset, then
+def resolve(given: dict[str, Any]) -> Config:
+    """The config of a new run: defaults, then the env's (and image agent's) preset, then
     `given` (field name -> value, e.g. from the command line; unknown names are ignored)."""
     run = RunConfig(**{f.name: given[f.name] for f in dataclasses.fields(RunConfig) if f.name in given})
     preset = env_preset(run.env, run.agent)
-    return tuple(  # type: ignore[return-value]
-        cls(**{**preset.get(name, {}), **{f.name: given[f.name] for f in dataclasses.fields(cls) if f.name in given}})
-        for name, cls in CONFIG_CLASSES.items()
-    )
+    groups = {}
+    for name, group in CONFIG_CLASSES.items():
+        fields = {f.name: given[f.name] for f in dataclasses.fields(group) if f.name in given}
+        groups[name] = group(**{**preset.get(name, {}), **fields})
+    return Config(**groups)

@@ -98,7 +98,9 @@ def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
             predicted = networks.forward(params["forward"], phi, batch["action"])
             r_i = jax.lax.stop_gradient(intrinsic_reward(predicted, next_phi, config.intrinsic_lambda))
             forward_loss = half_squared_error(predicted, jax.lax.stop_gradient(next_phi)).mean()
-            inverse_loss = half_squared_error(networks.inverse(params["inverse"], phi, next_phi), batch["action"]).mean()
+            inverse_loss = half_squared_error(
+                networks.inverse(params["inverse"], phi, next_phi), batch["action"]
+            ).mean()
             loss = config.forward_weight * forward_loss + config.inverse_weight * inverse_loss
             reward = reward + r_i
             aux.update(forward_loss=forward_loss, inverse_loss=inverse_loss, intrinsic_reward=r_i.mean())

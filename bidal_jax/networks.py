@@ -49,7 +49,11 @@ class PatchConv(nn.Module):
         else:
             out_h, out_w = (height - k) // s + 1, (width - k) // s + 1
         patches = jnp.concatenate(
-            [x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :] for dy in range(k) for dx in range(k)],
+            [
+                x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
+                for dy in range(k)
+                for dx in range(k)
+            ],
             axis=-1,
         )
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features))

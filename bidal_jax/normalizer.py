@@ -39,7 +39,9 @@ def update(state: NormalizerState, x: jax.Array) -> NormalizerState:
     total_sq = state.total_sq + jnp.square(flat).sum(0)
     mean = total / count
     var = jnp.maximum(total_sq / count - jnp.square(mean), 0.0)
-    return NormalizerState(count=count, total=total, total_sq=total_sq, mean=mean, std=jnp.maximum(jnp.sqrt(var), MIN_STD))
+    return NormalizerState(
+        count=count, total=total, total_sq=total_sq, mean=mean, std=jnp.maximum(jnp.sqrt(var), MIN_STD)
+    )
 
 
 def normalize(state: NormalizerState, x: jax.Array, clip: float) -> jax.Array:

@@ -1,4 +1,4 @@
-"""MJX environments of the paper's tasks, behind one registry (DESIGN.md).
+"""MJX environments of the paper's tasks, behind one registry (docs/design.md).
 
     env = envs_mjx.make("planar_reach", render=False)
     state = jax.jit(env.reset)(key)
@@ -47,7 +47,7 @@ _WARP_ABSENT = re.compile(r"Failed to import (warp|mujoco_warp): No module named
 if "mujoco.mjx" not in sys.modules:
     _import_without("mujoco.mjx", _WARP_ABSENT)
 
-from envs_mjx.base import Env, ObservationSpec, State  # after the quiet mjx import above
+from envs_mjx.base import Env, ObservationSpec, State  # noqa: E402 - after the quiet mjx import above
 
 # XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
 # before the first computation. With its default fusion emitters XLA:CPU compiles MJX

@@ -1,4 +1,4 @@
-"""The functional environment API shared by every task (DESIGN.md, "The environment API").
+"""The functional environment API shared by every task (docs/design.md, "The environment API").
 
 An `Env` is a set of pure functions over a `State` pytree: `reset(key) -> State` and
 `step(state, action) -> State`, both jit- and vmap-able, plus static facts fixed at
@@ -30,7 +30,7 @@ from envs_mjx.camera import Camera
 # the top-level assets/ folder, installed as the package `envs_mjx.assets` (pyproject.toml), so
 # that editable installs, wheels and `pip install .` all find the models from any directory
 ASSETS_DIR = importlib.resources.files("envs_mjx.assets")
-CONTROL_PERIOD = 0.04  # seconds, 25 Hz (TASKS.md)
+CONTROL_PERIOD = 0.04  # seconds, 25 Hz (docs/tasks.md)
 IMAGE_SHAPE = (42, 42, 1)  # grayscale, paper Table I
 
 
@@ -146,7 +146,7 @@ class Env(abc.ABC):
         # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
         self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
         self.backend = "jax"
-        self._blank = mjx.make_data(self.mjx_model)
+        self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
         self.n_substeps = int(round(n_substeps))
         self.episode_length = episode_length
         self.epsilon = epsilon
@@ -156,24 +156,31 @@ class Env(abc.ABC):
         self.camera_name = camera_name
         self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0])
 
-    def use_backend(self, backend: str, worlds: int = 1, contacts_per_world: int = 32, constraints_per_world: int = 128):
+    def use_backend(
+        self, backend: str, worlds: int = 1, contacts_per_world: int = 32, constraints_per_world: int = 128
+    ):
         """Step this env's physics with MJX's `backend` ("jax" or "warp", MuJoCo Warp on an NVIDIA GPU).
 
         Warp keeps one contact buffer for all worlds: `worlds` is the most envs stepped at once (envs × seeds)
         and `contacts_per_world` sizes it (contacts beyond it are dropped); `constraints_per_world` is `njmax`."""
         if backend == "jax":
             self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
-            self._blank = mjx.make_data(self.mjx_model)
+            self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
         elif backend == "warp":
             from mujoco.mjx.third_party.mujoco_warp import OverflowType
 
             model = mjx.put_model(self.mj_model, impl="warp")
             # the solver's iteration limit is the model's choice (assets/README.md), not an overflow to print
-            opt = model.opt.replace(_impl=model.opt._impl.replace(
-                warn_overflow=model.opt._impl.warn_overflow & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)))
+            opt = model.opt.replace(
+                _impl=model.opt._impl.replace(
+                    warn_overflow=model.opt._impl.warn_overflow
+                    & ~int(OverflowType.ITERATIONS | OverflowType.LS_ITERATIONS)
+                )
+            )
             self.mjx_model = model.replace(opt=opt)
-            self._blank = mjx.make_data(self.mj_model, impl="warp", naconmax=contacts_per_world * worlds,
-                                        njmax=constraints_per_world)
+            self._blank = mjx.make_data(
+                self.mj_model, impl="warp", naconmax=contacts_per_world * worlds, njmax=constraints_per_world
+            )
         else:
             raise ValueError(f"unknown physics backend {backend!r}; valid: jax, warp")
         self.backend = backend
@@ -209,7 +216,7 @@ class Env(abc.ABC):
         return sparse_reward(achieved_goal, desired_goal, self.epsilon)
 
     def reset(self, key: jax.Array) -> State:
-        """The task's initial state and goal (TASKS.md); evaluation always starts here."""
+        """The task's initial state and goal (docs/tasks.md); evaluation always starts here."""
         return self._start(*self._reset_data(key))
 
     def exploration_reset(self, key: jax.Array) -> State:
@@ -288,8 +295,17 @@ class JointReachEnv(Env):
       camera_name, episode_length, epsilon, goal_size, render: as for `Env`.
     """
 
-    def __init__(self, mj_model, *, max_delta: float, goal_size: int, camera_name: str, episode_length: int,
-                 epsilon: float, render: bool):
+    def __init__(
+        self,
+        mj_model,
+        *,
+        max_delta: float,
+        goal_size: int,
+        camera_name: str,
+        episode_length: int,
+        epsilon: float,
+        render: bool,
+    ):
         n = mj_model.njnt
         super().__init__(
             mj_model,

@@ -1,11 +1,11 @@
-"""A pure-JAX ray-cast camera shared by every environment (TASKS.md, "camera").
+"""A pure-JAX ray-cast camera shared by every environment (docs/tasks.md, "camera").
 
 The paper's visual input s^v_t is a 42×42 grayscale frame of the scene (Table I). Each
 pixel is one ray from the camera centre; its value is the gray level of the first geom the
 ray hits (the luminance of the geom's colour), or the background. The image is rendered
 inside jit on CPU and GPU alike and is what `mujoco.mjx.ray` cast per pixel sees (the same
-intersection functions and geoms; tests/test_camera.py compares them), organised for speed
-(PERFORMANCE.md: the camera bounds the image agents):
+intersection functions and geoms; tests/envs_mjx/test_camera.py compares them), organised for speed
+(the camera bounds the image agents: docs/results.md):
 
 - rays are precomputed once at construction in the world frame, so the camera must be
   fixed: its body and every ancestor have no joints and are not mocap bodies;

@@ -1,4 +1,4 @@
-"""nicol_slide and nicol_lift: NICOL's right arm and hand move a cube (paper Sec. III-D.3, TASKS.md).
+"""nicol_slide and nicol_lift: NICOL's right arm and hand move a cube (paper Sec. III-D.3, docs/tasks.md).
 
 The scene (`assets/nicol.xml`, documented in `assets/README.md`) is NICOL's right
 OpenManipulator-P arm with a simplified RH8D hand at a table, a 0.05 m cube and a dark
@@ -13,7 +13,7 @@ Action (A = 7, paper Table I), each entry in [-1, 1]:
 The arm follows the Cartesian command as in the Fetch tasks: a mocap body, welded to the
 hand's grasp point, is set to `clip(hand + increment)` inside the workspace box, and the
 arm joints follow passively under a stiff weld (tracking error after one control period
-a few mm, under 1 cm; see tests/test_nicol.py). Roll and tilt are angles about the hand's own x
+a few mm, under 1 cm; see tests/envs_mjx/test_nicol.py). Roll and tilt are angles about the hand's own x
 (along the fingers) and y (across the palm) axes relative to the rest orientation,
 kept within `ROLL_RANGE` and `TILT_RANGE`.
 
@@ -23,7 +23,7 @@ Proprio (D = 40, paper Table I), in this order: `ee_pos` 3 (the hand's grasp poi
 `qdot` 8. Rotations are extrinsic x-y-z Euler angles (roll, pitch, yaw) of the world
 rotation, as in Gymnasium-Robotics' Fetch observations; velocities are world-frame m/s
 and rad/s. The RH8D wrist flexion joint that helps the arm reach is not part of `q`
-(TASKS.md fixes q to eight entries); its effect is seen through `ee_rot`.
+(docs/tasks.md fixes q to eight entries); its effect is seen through `ee_rot`.
 
 Goal (G = 3): the cube centre; ε = 0.05 m, T = 50 steps. The cube starts upright,
 aligned with the resting hand, uniformly within ±`CUBE_START_RANGE` (xy) of a point in
@@ -46,7 +46,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from envs_mjx.base import Env, ObservationSpec, load_model
 

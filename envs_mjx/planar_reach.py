@@ -1,4 +1,4 @@
-"""planar_reach: a two-link planar arm reaches a target point (paper Sec. III-D.1, TASKS.md).
+"""planar_reach: a two-link planar arm reaches a target point (paper Sec. III-D.1, docs/tasks.md).
 
 Proprio is (q, qdot), D = 4; the action (A = 2) moves each joint's position target by at
 most 0.2 rad from the current joint angle; the goal (G = 2) is the end-effector's xy,
@@ -11,7 +11,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import mujoco
-from mujoco import mjx
 
 from envs_mjx.base import JointReachEnv, load_model
 
@@ -36,7 +35,8 @@ class PlanarReach(JointReachEnv):
     def __init__(self, render: bool = True):
         mj_model = load_model("planar_reach.xml")
         super().__init__(
-            mj_model, max_delta=MAX_DELTA, goal_size=2, camera_name="top", episode_length=50, epsilon=0.02, render=render
+            mj_model, max_delta=MAX_DELTA, goal_size=2, camera_name="top", episode_length=50, epsilon=0.02,
+            render=render,
         )
         self._ee_site = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, "ee")
 

@@ -1,4 +1,4 @@
-"""ur5_reach: the first three joints of a UR5 reach goal joint angles (paper Sec. III-D.2, TASKS.md).
+"""ur5_reach: the first three joints of a UR5 reach goal joint angles (paper Sec. III-D.2, docs/tasks.md).
 
 Proprio is (q, qdot), D = 6; the action (A = 3) moves each joint's position target by at
 most 0.1 rad from the current joint angle; the goal (G = 3) is a configuration of shoulder
@@ -24,7 +24,6 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from envs_mjx.base import JointReachEnv, load_model
 
@@ -79,7 +78,8 @@ class UR5Reach(JointReachEnv):
     def __init__(self, render: bool = True):
         mj_model = load_model("ur5_reach.xml")
         super().__init__(
-            mj_model, max_delta=MAX_DELTA, goal_size=3, camera_name="front", episode_length=50, epsilon=0.1, render=render
+            mj_model, max_delta=MAX_DELTA, goal_size=3, camera_name="front", episode_length=50, epsilon=0.1,
+            render=render,
         )
         body_ids = [mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, f"goal_{n}") for n in POINT_NAMES]
         self._cube_mocap_ids = jnp.asarray(mj_model.body_mocapid[body_ids])

@@ -1,6 +1,6 @@
 """Evaluate a trained run: `python -m experiments.evaluate --run-dir runs/ur5 [--checkpoint N|best]`.
 
-Restores only what acting needs (`bidal_jax.acting.load_policy`: parameters and
+Restores only what acting needs (`bidal_jax.run.policy.load_policy`: parameters and
 normalisers; the replay buffer is never read), runs `--episodes` deterministic episodes
 per seed and prints each seed's success with a 95 % Wilson interval, and the mean over
 seeds with a 95 % Student-t interval over the seeds (over the episodes when there is one
@@ -10,7 +10,7 @@ for that epoch; `--seed S` draws other episodes.
 
 A run trained with observation noise (paper Sec. IV-B, Eq. 9: `noise_segments`, κ per seed) is
 evaluated under it, as training's evaluation is: κ and σ are restored from the checkpoint
-(`acting.load_noise`) and each step's noise is drawn as in training, so the logged success is
+(`bidal_jax.run.policy.load_noise`) and each step's noise is drawn as in training, so the logged success is
 reproduced too. `--clean` evaluates without noise; the output says which. The video's agent sees
 clean observations.
 
@@ -34,10 +34,10 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax import acting, noise
-from bidal_jax.checkpoint import CheckpointError
-from experiments import stats
+from bidal_jax.run.checkpoint import CheckpointError
+from bidal_jax.run.policy import TrainedPolicy, load_noise, load_policy
+from experiments import cli, stats
 
-EXIT_BAD_INPUT = 2
 Z95 = 1.959963984540054
 
 
@@ -57,33 +57,33 @@ def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
     return stats.student_interval(rates)
 
 
-def evaluate_seeds(env, trained: acting.TrainedPolicy, keys: jax.Array, episodes: int,
+def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
                    noise_state: noise.NoiseState | None = None) -> np.ndarray:
     """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training; with
     `noise_state` (κ [S], σ [S, F]) each seed sees its observation noise as training's evaluation does."""
     indices = noise.feature_indices(env.observation_spec.proprio_segments,
-                                    noise.parse_segments(trained.train.noise_segments))
+                                    noise.parse_segments(trained.config.train.noise_segments))
 
     def one(params, key, seed_noise):
-        policy = acting.make_policy(trained.networks, trained.agent, trained.train, params)
+        policy = acting.make_policy(trained.networks, trained.config, params)
         observe = None if seed_noise is None else functools.partial(noise.observe, seed_noise, indices)
         return acting.evaluate(env, policy, key, episodes, observe=observe)
 
     return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys, noise_state))
 
 
-def noise_line(trained: acting.TrainedPolicy, noise_state: noise.NoiseState | None, clean: bool) -> str:
+def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, clean: bool) -> str:
     """What the evaluated agents observed: the run's noise (κ per seed, σ restored) or clean observations."""
-    if not noise.parse_segments(trained.train.noise_segments):
+    if not noise.parse_segments(trained.config.train.noise_segments):
         return "observations: clean (the run trained without observation noise)"
     if clean:
-        return f"observations: clean (--clean; the run trained with noise on {trained.train.noise_segments})"
+        return f"observations: clean (--clean; the run trained with noise on {trained.config.train.noise_segments})"
     kappas = ", ".join(f"{k:g}" for k in np.unique(np.asarray(noise_state.kappa)))
-    return (f"observations: noisy as in training's evaluation, κ {kappas} on {trained.train.noise_segments}, "
+    return (f"observations: noisy as in training's evaluation, κ {kappas} on {trained.config.train.noise_segments}, "
             f"σ restored from checkpoint {trained.step} (paper Eq. 9)")
 
 
-def render_video(env, trained: acting.TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
+def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
                  quiet: bool = False) -> int:
     """Write `episodes` episodes of seed 0 to `path`: MuJoCo's render (width × height) beside the
     agent's 42×42 view scaled to the same height. Returns the number of frames written."""
@@ -128,12 +128,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--run-dir", required=True, help="the run's directory (with checkpoints/ and config.json)")
     parser.add_argument("--checkpoint", default=None, help="a checkpoint step, or 'best' (default: the latest)")
     parser.add_argument("--episodes", type=int, default=100, help="episodes per seed")
-    parser.add_argument("--seed", type=int, default=None, help="draw episodes from this seed (default: the checkpoint's evaluation key)")
+    parser.add_argument(
+        "--seed", type=int, default=None, help="draw episodes from this seed (default: the checkpoint's evaluation key)"
+    )
     parser.add_argument("--video", default="", help="also write a video of seed 0's episodes to this .mp4")
     parser.add_argument("--video-episodes", type=int, default=2, help="episodes in the video")
     parser.add_argument("--video-size", default="320x240", help="MuJoCo render size WIDTHxHEIGHT (at least 320x240)")
-    parser.add_argument("--clean", action="store_true", help="evaluate without the run's observation noise "
-                        "(default: a run trained with noise is evaluated under it, as training's evaluation is)")
+    parser.add_argument(
+        "--clean",
+        action="store_true",
+        help="evaluate without the run's observation noise "
+        "(default: a run trained with noise is evaluated under it, as training's evaluation is)",
+    )
     parser.add_argument("--json", default="", help="also write the results to this JSON file")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -153,18 +159,20 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         if args.episodes < 1 or args.video_episodes < 1:
-            raise ValueError(f"--episodes {args.episodes} / --video-episodes {args.video_episodes}: must be positive integers")
+            raise ValueError(
+                f"--episodes {args.episodes} / --video-episodes {args.video_episodes}: must be positive integers"
+            )
         if args.video and not args.video.endswith(".mp4"):
             raise ValueError(f"--video {args.video}: must name an .mp4 file")
         size = _video_size(args.video_size)
         if not os.path.isdir(args.run_dir):
             raise ValueError(f"--run-dir {args.run_dir}: no such directory")
-        trained = acting.load_policy(args.run_dir, args.checkpoint)
-        noise_state = None if args.clean else acting.load_noise(args.run_dir, trained)
+        trained = load_policy(args.run_dir, args.checkpoint)
+        noise_state = None if args.clean else load_noise(args.run_dir, trained)
     except (ValueError, CheckpointError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    env = envs_mjx.make(trained.run.env, render=trained.agent.uses_image)
+        return cli.exit_code(err)
+    run = trained.config.run
+    env = envs_mjx.make(run.env, render=trained.config.agent.uses_image)
     if args.seed is None:
         keys = trained.eval_key
     else:
@@ -172,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     success = evaluate_seeds(env, trained, keys, args.episodes, noise_state)
     mean, low, high = mean_interval(success)
     observed = noise_line(trained, noise_state, args.clean)
-    print(f"{trained.run.env} / {trained.run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
+    print(f"{run.env} / {run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
     print(observed)
     for i, row in enumerate(success):
         lo, hi = wilson_interval(int(row.sum()), row.size)
@@ -180,8 +188,18 @@ def main(argv: list[str] | None = None) -> int:
     print(f"mean success {mean:.3f} (95 % interval {low:.3f}-{high:.3f}) over {trained.seeds} seed(s)")
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"checkpoint": trained.step, "episodes": args.episodes, "per_seed": success.mean(axis=1).tolist(),
-                       "mean": mean, "interval": [low, high], "observations": observed}, f, indent=2)
+            json.dump(
+                {
+                    "checkpoint": trained.step,
+                    "episodes": args.episodes,
+                    "per_seed": success.mean(axis=1).tolist(),
+                    "mean": mean,
+                    "interval": [low, high],
+                    "observations": observed,
+                },
+                f,
+                indent=2,
+            )
     if args.video:
         key = jax.random.PRNGKey(0 if args.seed is None else args.seed)
         frames = render_video(env, trained, key, args.video_episodes, args.video, size, args.quiet)

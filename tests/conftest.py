@@ -1,27 +1,34 @@
-"""Test configuration: JAX's persistent compilation cache, so that reruns skip compiles."""
+"""Test configuration: JAX's persistent compilation cache, so that reruns skip compiles, and the
+fixtures that several test modules share."""
 
+import csv
+import json
 import os
+import types
 
 import jax
 import pytest
+
+import envs_mjx
+from bidal_jax.config import resolve
+from bidal_jax.run import loop, preflight
+from experiments import run
+from tests.helpers import FINISHED
 
 jax.config.update("jax_compilation_cache_dir", os.path.join(os.path.dirname(os.path.dirname(__file__)), ".jax_cache"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
-# ----- experiment scripts (experiments/grid.py) without training ----------------------------------------
+# ----- paper experiments (experiments/paper/grid.py) without training ----------------------------------------
 
 
 def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal",
                    compile_seconds: float | None = None) -> None:
-    """A run directory as loop.train writes it (config.json, metrics.csv), with an (empty) checkpoint
+    """A run directory as `loop.train` writes it (config.json, metrics.csv), with an (empty) checkpoint
     step unless `checkpoint_epoch` is None. `rows`: per epoch, each seed's eval success; every
     epoch is 100 env steps per seed and 10 s of wall time. With `compile_seconds`, metrics.csv has
     `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column."""
-    import csv
-    import json
-
     seeds = len(rows[0])
     os.makedirs(run_dir if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
     with open(os.path.join(run_dir, "config.json"), "w") as f:
@@ -45,25 +52,30 @@ def fake_run():
 @pytest.fixture
 def no_nicol(monkeypatch):
     """Envs that only tell their episode length, and a record of the runs prepared and trained."""
-    import types
-
-    import envs_mjx
-    from bidal_jax import config as config_lib, loop
-
     calls = []
     monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(
         episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=())))
 
     def prepare(given, resume, overwrite, **kwargs):
         calls.append(("prepare", given["run_dir"], resume, overwrite))
-        return config_lib.resolve(given)
+        return resolve(given)
 
-    def train(env, run_cfg, *configs, resume, initialize, **kwargs):
+    def train(env, config, *, resume, initialize, **kwargs):
         # a run without a checkpoint was emptied first (but for its lock, which a real prepare took)
-        assert resume or not os.path.exists(run_cfg.run_dir) or set(os.listdir(run_cfg.run_dir)) <= {".lock"}
-        calls.append(("train", run_cfg.run_dir, resume, initialize is not None))
+        run_dir = config.run.run_dir
+        assert resume or not os.path.exists(run_dir) or set(os.listdir(run_dir)) <= {".lock"}
+        calls.append(("train", run_dir, resume, initialize is not None))
         return {}
 
-    monkeypatch.setattr(loop, "prepare", prepare)
+    monkeypatch.setattr(preflight, "prepare", prepare)
     monkeypatch.setattr(loop, "train", train)
     return calls
+
+
+@pytest.fixture(scope="session")
+def finished(tmp_path_factory):
+    """A finished tiny run (`helpers.FINISHED`) with a checkpoint saved after every epoch, and its metrics rows."""
+    run_dir = str(tmp_path_factory.mktemp("finished") / "run")
+    assert run.main([*FINISHED, "--run-dir", run_dir]) == 0
+    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
+        return run_dir, list(csv.DictReader(f))

@@ -35,8 +35,9 @@ SCRIPT = """
 import sysconfig
 import jax, jax.numpy as jnp
 import envs_mjx, envs_mjx.base, bidal_jax.train
-from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
-from bidal_jax.train import make_seeded, make_train
+from bidal_jax.config import Config, RunConfig, TrainConfig
+from bidal_jax.run.devices import make_seeded
+from bidal_jax.train import make_train
 
 site = sysconfig.get_paths()["purelib"]
 for where in (envs_mjx.__file__, str(envs_mjx.base.ASSETS_DIR), bidal_jax.train.__file__):
@@ -49,8 +50,8 @@ for name in envs_mjx.names():
         assert int(state.info["step"]) == 1, name
 
 cfg = TrainConfig(num_envs=4, cycles_per_epoch=1, updates_per_cycle=1, batch_size=8, buffer_episodes=8, eval_envs=4)
-init, epoch = make_seeded(*make_train(envs_mjx.make("planar_reach", render=False), AGENTS["proprio_baseline"],
-                                      NetworkConfig(), cfg))
+init, epoch = make_seeded(*make_train(envs_mjx.make("planar_reach", render=False),
+                                      Config(RunConfig(agent="proprio_baseline"), cfg)))
 state, metrics = epoch(init(jax.random.split(jax.random.PRNGKey(0), 1)))
 assert int(metrics["env_steps"][0]) > 0, metrics
 print("wheel ok")

@@ -1,0 +1,315 @@
+"""Orbax checkpoints of the whole `TrainState` plus the run's config.
+
+A checkpoint directory `<run>/checkpoints/<epoch>/` holds four items: `state` (all
+parameters, optimiser states, targets, normalisers, rng, counters), `buffer` (the replay
+buffer, kept apart so that acting and transfer never read it and it can be deleted),
+`config` (the run's config as JSON) and `digest` (a CRC-32 per state leaf, as JSON).
+A manager keeps the latest two checkpoints and the best one by evaluation success
+(`resolve_step(directory, "best")` finds it).
+
+Crash safety: Orbax writes each step to `<epoch>.orbax-checkpoint-tmp/` and renames it
+when complete, so a process killed at any moment (even mid-save) leaves the previous
+checkpoint intact; the step listing ignores unfinished temporary directories and a
+writing `manager` deletes them. A save that fails (e.g. the disk is full) deletes its own at once;
+saves are synchronous (the loop waits for each anyway): a failure is raised by `save` itself.
+Damage is detected, never restored silently: Orbax and
+TensorStore reject truncated or missing files, and the digest catches flipped bytes,
+which they would load without complaint. Every failure is a `CheckpointError` whose
+message says which checkpoint and what is wrong with it.
+
+`restore_partial` reads only named leaves (e.g. the acting parameters and normalisers)
+with Orbax partial restore, checked against the digest like a full restore. Readers open only the
+items they need, each with its own handler (no warning about the manager's `metrics` item).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import threading
+import zlib
+from typing import Any
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+from etils import epath
+
+from bidal_jax import replay
+from bidal_jax.run import multihost, rundir
+
+
+class CheckpointError(Exception):
+    """A checkpoint that cannot be used: missing, damaged, or written for another run."""
+
+
+BEST_METRIC = "eval_success"
+ARRAY_ITEMS = ("state", "buffer")
+# seconds to wait for each of the threads of a failed save before deleting what it wrote
+SAVE_THREADS_TIMEOUT = 30.0
+
+
+def _handlers(partial: bool = False) -> dict[str, ocp.CheckpointHandler]:
+    """The items' handlers; a partial restore reads `state` with the PyTree handler it was saved in."""
+    return {
+        "state": ocp.PyTreeCheckpointHandler() if partial else ocp.StandardCheckpointHandler(),
+        "buffer": ocp.StandardCheckpointHandler(),
+        "config": ocp.JsonCheckpointHandler(),
+        "digest": ocp.JsonCheckpointHandler(),
+    }
+
+
+def manager(directory: str, keep_latest: int = 2) -> ocp.CheckpointManager:
+    """A writing manager that keeps the `keep_latest` newest checkpoints and the best one
+    (highest `eval_success` given to `save`); creates `directory` and removes unfinished saves."""
+    policy = ocp.checkpoint_managers.AnyPreservationPolicy([
+        ocp.checkpoint_managers.LatestN(n=keep_latest),
+        ocp.checkpoint_managers.BestN(get_metric_fn=_best_metric, n=1, keep_checkpoints_without_metrics=False),
+    ])
+    # best_fn makes the manager write each step's metrics to disk, so the best survives a resume
+    options = ocp.CheckpointManagerOptions(
+        preservation_policy=policy, best_fn=_best_metric, create=True, cleanup_tmp_directories=True,
+        enable_async_checkpointing=False,
+    )
+    return ocp.CheckpointManager(os.path.abspath(directory), options=options, item_handlers=_handlers())
+
+
+def _best_metric(metrics: dict) -> float:
+    return metrics[BEST_METRIC]
+
+
+def leaf_name(path: tuple) -> str:
+    """A pytree key path as `params/actor/...`."""
+    return "/".join(str(getattr(k, "key", getattr(k, "name", getattr(k, "idx", k)))) for k in path)
+
+
+def digest(state: Any) -> dict[str, int]:
+    """Leaf name -> CRC-32 of its bytes, read on the host in parts (`multihost.host_parts`: the
+    whole state, or one seed at a time from a state spanning processes, which all digest it)."""
+    names = [leaf_name(path) for path, _ in jax.tree_util.tree_flatten_with_path(state)[0]]
+    crcs = [0] * len(names)
+    for part in multihost.host_parts(state):
+        crcs = [zlib.crc32(np.ascontiguousarray(leaf), crc) for leaf, crc in zip(jax.tree.leaves(part), crcs)]
+    return dict(zip(names, crcs))
+
+
+def _split(state: Any) -> tuple[dict, Any]:
+    """A training state as (its fields but the buffer, as a dict; the buffer)."""
+    fields = {f.name: getattr(state, f.name) for f in dataclasses.fields(state) if f.name != "buffer"}
+    return fields, state.buffer
+
+
+def save(
+    mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1
+) -> None:
+    """Save `state` (buffer apart), `config` and the state's digest as `step`, ranked by
+    `eval_success` for the best checkpoint; wait until it is on disk. `env_shards`: how many
+    shards kept the buffer (its layout, `replay.relayout`), saved beside the digest."""
+    fields, buffer = _split(state)
+    running = set(threading.enumerate())
+    try:
+        mngr.save(
+            step,
+            args=ocp.args.Composite(
+                state=ocp.args.StandardSave(fields),
+                buffer=ocp.args.StandardSave(buffer),
+                config=ocp.args.JsonSave(config),
+                digest=ocp.args.JsonSave({"crc32": digest(state), "env_shards": env_shards}),
+            ),
+            metrics={BEST_METRIC: float(eval_success)},
+        )
+        mngr.wait_until_finished()
+    except BaseException:
+        # Orbax's threads of this save may still be writing into its directory: wait for them first
+        for thread in set(threading.enumerate()) - running:
+            thread.join(timeout=SAVE_THREADS_TIMEOUT)
+        if multihost.is_main():
+            remove_unfinished(str(mngr.directory), step)
+        raise
+
+
+def remove_unfinished(directory: str, step: int) -> None:
+    """Delete the unfinished save of `step` (Orbax's `<step>.orbax-checkpoint-tmp*` directories) in `directory`."""
+    prefix = f"{step}{ocp.path.step.TMP_DIR_SUFFIX}"
+    for name in os.listdir(directory) if os.path.isdir(directory) else []:
+        if name.startswith(prefix):
+            shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
+
+
+def steps(directory: str) -> list[int]:
+    """The complete checkpoints in `directory`, oldest first (unfinished saves are not listed)."""
+    if not os.path.isdir(directory):
+        return []
+    return sorted(ocp.path.step.checkpoint_steps(directory))
+
+
+def latest_step(directory: str) -> int | None:
+    found = steps(directory)
+    return found[-1] if found else None
+
+
+def best_step(directory: str) -> int | None:
+    """The checkpoint with the highest saved eval success (the latest of equals), or None."""
+    found = steps(directory)
+    if not found:
+        return None
+    options = ocp.CheckpointManagerOptions(read_only=True, best_fn=_best_metric)
+    mngr = ocp.CheckpointManager(os.path.abspath(directory), options=options)
+    try:
+        ranked = [(m[BEST_METRIC], s) for s in found if (m := mngr.metrics(s)) and BEST_METRIC in m]
+    finally:
+        mngr.close()
+    return max(ranked)[1] if ranked else None
+
+
+def resolve_step(directory: str, step: int | str | None) -> int:
+    """A checkpoint step from None (latest), an int (or its string) or "best"; CheckpointError if absent."""
+    if step == "best":
+        best = best_step(directory)
+        if best is None:
+            raise CheckpointError(f"no checkpoint with an eval success in {directory}")
+        return best
+    if isinstance(step, str):
+        if not step.isdigit():
+            raise CheckpointError(f"checkpoint {step!r}: must be a step number or 'best'")
+        step = int(step)
+    return _step_dir(directory, step)[1]
+
+
+def _step_dir(directory: str, step: int | None) -> tuple[str, int]:
+    found = steps(directory)
+    if not found:
+        raise CheckpointError(f"no checkpoint in {directory}")
+    step = found[-1] if step is None else step
+    if step not in found:
+        raise CheckpointError(f"no checkpoint {step} in {directory}; it has {found}")
+    return os.path.join(os.path.abspath(directory), str(step)), step
+
+
+def _reason(err: BaseException) -> str:
+    """The first line of the innermost cause: Orbax wraps TensorStore's precise message in long ones."""
+    *_, err = rundir.causes(err)
+    lines = str(err).strip().splitlines()
+    return f"{type(err).__name__}: {lines[0] if lines else ''}"[:300]
+
+
+def read_config(directory: str, step: int | None = None) -> dict:
+    """The config stored with a checkpoint (the latest one by default); reads only."""
+    path, step = _step_dir(directory, step)
+    try:
+        config = ocp.Checkpointer(ocp.CompositeCheckpointHandler(**_handlers())).restore(
+            path, args=ocp.args.Composite(config=ocp.args.JsonRestore())
+        )["config"]
+    except Exception as err:  # orbax raises many types for damaged files
+        raise CheckpointError(f"checkpoint {step} in {directory} has no readable config ({_reason(err)})") from err
+    if not isinstance(config, dict):
+        raise CheckpointError(
+            f"checkpoint {step} in {directory} has no readable config (it holds {type(config).__name__})"
+        )
+    return config
+
+
+def _check_structure(saved: Any, target: Any, where: str, partial: bool = False) -> None:
+    """Raise unless the saved leaves have the target's names, shapes and dtypes (with `partial`,
+    the saved state may hold more leaves than the target)."""
+    have = {leaf_name(p): leaf for p, leaf in jax.tree_util.tree_flatten_with_path(saved)[0]}
+    want = {leaf_name(p): leaf for p, leaf in jax.tree_util.tree_flatten_with_path(target)[0]}
+    missing, extra = sorted(set(want) - set(have)), [] if partial else sorted(set(have) - set(want))
+    if missing or extra:
+        raise CheckpointError(
+            f"{where} holds a state of another shape: "
+            + "; ".join(filter(None, [missing and f"missing {missing[:3]}", extra and f"unexpected {extra[:3]}"]))
+        )
+    for name, leaf in want.items():
+        if tuple(have[name].shape) != tuple(leaf.shape) or np.dtype(have[name].dtype) != np.dtype(leaf.dtype):
+            raise CheckpointError(
+                f"{where} holds a state of another shape: {name} is {tuple(have[name].shape)} "
+                f"{np.dtype(have[name].dtype)}, "
+                f"this config needs {tuple(leaf.shape)} {np.dtype(leaf.dtype)}"
+            )
+
+
+def restore(directory: str, abstract_state: Any, step: int | None = None, env_shards: int = 1) -> tuple[Any, dict, int]:
+    """Restore (state, config, step) shaped like `abstract_state` (latest step by default); reads only.
+
+    Checks the saved leaves' names, shapes and dtypes against `abstract_state` before
+    reading any array, and the restored bytes against the saved digest afterwards. A buffer
+    saved by another number of env shards is laid out for `env_shards` (`replay.relayout`).
+    """
+    path, step = _step_dir(directory, step)
+    where = f"checkpoint {step} in {directory}"
+    fields, buffer = _split(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
+    saved = _metadata(path, where)
+    _check_structure(saved, {"state": fields, "buffer": buffer}, where)
+    restored = _restore_checked(
+        path,
+        where,
+        {
+            "state": ocp.args.StandardRestore(fields),
+            "buffer": ocp.args.StandardRestore(buffer),
+            "config": ocp.args.JsonRestore(),
+        },
+    )
+    saved_shards = (restored["digest"] or {}).get("env_shards", 1)  # checkpoints before env shards: 1
+    buffer = replay.relayout(restored["buffer"], saved_shards, env_shards, axis=1)  # after the seed axis
+    return type(abstract_state)(**restored["state"], buffer=buffer), restored["config"], step
+
+
+def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
+    """{"state": tree, "buffer": tree} (the items `names`) of a checkpoint's array metadata (shapes, dtypes; no
+    data), each read by its item's handler alone: the other items are not opened."""
+    handlers, saved = _handlers(), {}
+    for name in names:
+        item = os.path.join(path, name)
+        if not os.path.isdir(item):
+            raise CheckpointError(f"{where} is damaged: it has no {name}")
+        try:
+            saved[name] = dict(handlers[name].metadata(epath.Path(item)))
+        except Exception as err:
+            raise CheckpointError(f"{where} is damaged: its metadata cannot be read ({_reason(err)})") from err
+    return saved
+
+
+def read_metadata(directory: str, step: int | None = None, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
+    """The array metadata (shape, dtype) of a checkpoint's `state` and `buffer` items (or those
+    in `names`); reads no array."""
+    path, step = _step_dir(directory, step)
+    return _metadata(path, f"checkpoint {step} in {directory}", names)
+
+
+def _restore_checked(path: str, where: str, args: dict, partial: bool = False) -> dict:
+    """Restore the items `args` and check every restored array against the saved digest."""
+    reader = ocp.Checkpointer(ocp.CompositeCheckpointHandler(**_handlers(partial)))
+    try:
+        restored = reader.restore(path, args=ocp.args.Composite(**args, digest=ocp.args.JsonRestore()))
+    except Exception as err:
+        raise CheckpointError(f"{where} is damaged: {_reason(err)}") from err
+    expected = (restored["digest"] or {}).get("crc32", {})
+    arrays = {name: restored[name] for name in ARRAY_ITEMS if name in args}
+    found = {
+        **digest(arrays.get("state", {})),
+        **{f"buffer/{k}": v for k, v in digest(arrays.get("buffer", {})).items()},
+    }
+    bad = [name for name, crc in found.items() if expected.get(name) != crc]
+    if bad:
+        raise CheckpointError(f"{where} is corrupted: {', '.join(bad[:3])} does not match its saved checksum")
+    return restored
+
+
+def restore_partial(directory: str, step: int | None, wanted: Any) -> dict:
+    """Only the leaves of the `state` item named by `wanted` (a sub-tree of `read_metadata(...)["state"]`
+    or of shape/dtype structs), with Orbax partial restore, as numpy arrays on the host (whatever
+    devices and processes wrote them: every process reads them whole); the buffer is never read.
+
+    Raises CheckpointError when a wanted leaf is missing, damaged or fails its checksum.
+    """
+    path, step = _step_dir(directory, step)
+    where = f"checkpoint {step} in {directory}"
+    # no sharding: the saved one names the writer's devices, which this process may not have
+    target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), wanted)
+    _check_structure(_metadata(path, where, ("state",))["state"], target, where, partial=True)
+    args = ocp.args.PyTreeRestore(
+        item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True
+    )
+    return _restore_checked(path, where, {"state": args}, partial=True)["state"]

@@ -1,0 +1,121 @@
+"""Where a run's seeds and env shards live: devices, meshes and shardings (`jax.sharding`).
+
+Seeds are a `vmap` of `train.make_train`'s `init` and `epoch`, their leading axis split over
+devices (`SEED_AXIS`); devices the seeds leave over split each seed's envs (`ENV_AXIS`, a
+`shard_map` whose collectives `train.Shards` traces). `device_layout` picks the devices and
+the number of env shards, `make_seeded` compiles the seeds as one program over them, and
+`seed_sharding` says where a training state lives for `jax.device_put` (a restored checkpoint,
+a transferred state). With several processes the seeds span every process's devices.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Any, Callable, Sequence
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from bidal_jax import replay
+from bidal_jax.config import ConfigError, TrainConfig
+from bidal_jax.train import ENV_AXIS, SEED_AXIS, TrainState
+
+
+def seed_devices(seeds: int, devices: Sequence[jax.Device] | None = None) -> list[jax.Device]:
+    """The devices that `seeds` vmapped seeds are spread over: of each process's `devices` (default:
+    all, of every process), as many as divide that process's share of the seeds evenly (one process
+    with 4 GPUs: 8 seeds on 4, 6 on 2, 1 seed on 1; two with 2 devices each: 4 seeds on 2 + 2).
+    Raises ConfigError when the processes cannot hold equal shares."""
+    owned = _by_process(devices)
+    if seeds % len(owned):
+        raise ConfigError(
+            f"--seeds {seeds}: must be a multiple of the {len(owned)} processes (each holds as many seeds)"
+        )
+    per_process = math.gcd(seeds // len(owned), min(len(own) for own in owned))
+    return [d for own in owned for d in own[:per_process]]
+
+
+def _by_process(devices: Sequence[jax.Device] | None) -> list[list[jax.Device]]:
+    """`devices` (default: all, of every process) grouped by process, in process order."""
+    devices = list(jax.devices() if devices is None else devices)
+    return [[d for d in devices if d.process_index == p] for p in sorted({d.process_index for d in devices})]
+
+
+def device_layout(
+    seeds: int, config: TrainConfig, max_shards: int = 1, devices: Sequence[jax.Device] | None = None
+) -> tuple[list, int]:
+    """(the devices of a run, its env shards k): `seed_devices` hold the seeds, and each seed
+    device's process lends it, of the devices left over, the most (k - 1, k ≤ `max_shards`)
+    such that k divides the envs, evaluation envs and batch (k = 1 with observation noise, see
+    `make_train`). The devices come seed device by seed device, each followed by its shards'
+    others. One process with 4 devices, 16 envs, `max_shards` 4: 1 seed on 4 × 4 shards,
+    2 seeds on 2 × 2, 4 on 4 × 1; with 6 envs, 1 seed on 2 × 2."""
+    owned = _by_process(devices)
+    per_process = len(seed_devices(seeds, devices)) // len(owned)
+    spare = min(min(len(own) for own in owned) // per_process, max_shards)
+    divisor = 1 if config.noise_segments else math.gcd(config.num_envs, config.eval_envs, config.batch_size)
+    shards = max(k for k in range(1, spare + 1) if divisor % k == 0)
+    return [d for own in owned for d in own[: per_process * shards]], shards
+
+
+def _mesh(devices: Sequence[jax.Device], shards: int) -> Mesh:
+    return Mesh(np.array(devices).reshape(-1, shards), (SEED_AXIS, ENV_AXIS))
+
+
+def _state_specs() -> TrainState:
+    """The mesh axes of a TrainState[S]'s leaves (a pytree prefix): the seed axis everywhere, and
+    the replay buffer's episodes also split over the env shards (each shard keeps its own)."""
+    seed = P(SEED_AXIS)
+    return TrainState(
+        params=seed,
+        target_params=seed,
+        opt_state=seed,
+        proprio_norm=seed,
+        goal_norm=seed,
+        buffer=replay.ReplayState(episodes=P(SEED_AXIS, ENV_AXIS), position=seed, size=seed),
+        key=seed,
+        eval_key=seed,
+        noise=seed,
+        env_steps=seed,
+        updates=seed,
+        epoch=seed,
+    )
+
+
+def seed_sharding(devices: Sequence[jax.Device], shards: int = 1) -> Any:
+    """Where a TrainState[S] (or any seed-leading pytree, with `shards` 1) lives on `devices`, for
+    `jax.device_put`: with `shards` 1, every leaf's leading (seed) axis split over a 1-D mesh
+    named "seeds"; else the state's leaves on the [seeds, envs] mesh (`_state_specs`)."""
+    if shards == 1:
+        return NamedSharding(Mesh(np.array(devices), (SEED_AXIS,)), P(SEED_AXIS))
+    mesh = _mesh(devices, shards)
+    return jax.tree.map(lambda spec: NamedSharding(mesh, spec), _state_specs(), is_leaf=lambda x: isinstance(x, P))
+
+
+def make_seeded(init: Callable, epoch: Callable, devices: Sequence[jax.Device] | None = None, shards: int = 1):
+    """Seeds as one vmapped, jitted program: `init(keys[S]) -> TrainState[S]`, `epoch`.
+
+    The seed axis of the state, keys and metrics is sharded over `devices` (default: the
+    first device) with `jax.sharding`: JAX's SPMD partitioner runs S / len(devices) seeds on
+    each device in one program, with no communication between seeds. With `shards` k > 1
+    (`init` and `epoch` from `make_train(..., env_shards=k)`), `devices` form a [S-shards, k]
+    mesh and the program is a `shard_map` over it: each device runs its seeds' share of the envs.
+    """
+    devices = jax.devices()[:1] if devices is None else devices
+    if shards == 1:
+        sharding = seed_sharding(devices)
+        return (
+            jax.jit(jax.vmap(init), in_shardings=sharding, out_shardings=sharding),
+            jax.jit(jax.vmap(epoch), in_shardings=sharding, out_shardings=sharding, donate_argnums=0),
+        )
+    # no vma type check: MJX's loops carry env state that starts replicated (zeros) and becomes
+    # shard-varying; what leaves the program replicated is averaged or gathered (`make_train`)
+    mesh, specs = _mesh(devices, shards), _state_specs()
+    sharded = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
+    return (
+        jax.jit(sharded(jax.vmap(init), in_specs=P(SEED_AXIS), out_specs=specs)),
+        jax.jit(sharded(jax.vmap(epoch), in_specs=(specs,), out_specs=(specs, P(SEED_AXIS))), donate_argnums=0),
+    )

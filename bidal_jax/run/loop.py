@@ -1,0 +1,194 @@
+"""The training loop that every command line and experiment calls.
+
+    config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make)
+    row = loop.train(envs_mjx.make(config.run.env, render=config.agent.uses_image), config)
+
+`train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
+(metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
+`checkpoint`), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
+non-finite metric or parameter stops the run without saving it; `guard`), holding the run
+directory's lock (`rundir`) throughout. Errors are exceptions whose message is one line:
+`CheckpointError` (bad input, nothing written), `Diverged`, `Interrupted` (a checkpoint was
+saved), `rundir.DiskError` (a write failed for want of disk).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from typing import Any, Callable, NamedTuple
+
+import jax
+import numpy as np
+from tqdm import tqdm
+
+from bidal_jax.config import Config
+from bidal_jax.run import checkpoint, multihost, rundir
+from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
+from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
+from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
+from bidal_jax.train import make_train
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+class Programs(NamedTuple):
+    """A run's jitted programs and where they run (`devices.device_layout`)."""
+
+    init: Callable
+    epoch: Callable
+    keys: jax.Array  # the seeds' keys
+    sharding: Any  # where the training state lives (for jax.device_put)
+    devices: list
+    shards: int  # env shards per seed
+
+
+def _programs(env, config: Config) -> Programs:
+    run = config.run
+    devices, shards = device_layout(run.seeds, config.train, run.env_shards)
+    init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
+    keys = jax.random.split(jax.random.PRNGKey(run.seed), run.seeds)
+    return Programs(init, epoch, keys, seed_sharding(devices, shards), devices, shards)
+
+
+def restore_state(env, config: Config, step: int | None = None):
+    """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default),
+    placed on this process's devices (whatever device count wrote it); compiles nothing."""
+    return _restore(config.run.run_dir, _programs(env, config), step)
+
+
+def _restore(run_dir: str, programs: Programs, step: int | None = None):
+    abstract = jax.eval_shape(programs.init, programs.keys)
+    state, _, step = checkpoint.restore(os.path.join(run_dir, "checkpoints"), abstract, step, programs.shards)
+    return jax.device_put(state, programs.sharding), step
+
+
+def build(env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None):
+    """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's;
+    writes nothing.
+
+    `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
+    from another run for transfer); a resumed run continues its checkpoint as it is.
+    Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
+    """
+    run, programs = config.run, _programs(env, config)
+    start = time.time()
+    shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
+    log(
+        f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on "
+        f"{len(programs.devices)} device(s){shards}) ..."
+    )
+    if resume:
+        state, step = _restore(run.run_dir, programs)
+    else:
+        state, step = programs.init(programs.keys), 0
+        if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
+            state = jax.device_put(initialize(state), programs.sharding)
+    compiled = programs.epoch.lower(state).compile()
+    log(f"compiled in {time.time() - start:.1f} s")
+    return compiled, state, step, programs.shards
+
+
+def train(
+    env, config: Config, *, quiet: bool = False, resume: bool = False, initialize: Callable | None = None
+) -> dict[str, float]:
+    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`); returns
+    the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
+    edits a new run's initial state (see `build`).
+
+    Holds the run directory's lock (`preflight.prepare` took it; taken here if not) until it returns
+    or raises. Raises CheckpointError (before writing anything) when the checkpoint cannot be
+    restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
+    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
+    checkpoint is deleted: the last good one is what a resumed run continues).
+
+    With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
+    process's devices, the checkpoints are written by all, config.json, the metrics and the progress
+    bar by process 0 only; a signal to any process stops all after the same epoch.
+    """
+    begun = time.time()  # the clock of wall_time_with_compile
+    main, run_dir = multihost.is_main(), config.run.run_dir
+    if main:
+        rundir.hold(run_dir)
+    try:
+        return _train(env, config, quiet, resume, initialize, begun)
+    finally:
+        if main:
+            rundir.release(run_dir)
+
+
+def _last_good(saved: int | None, ckpt_dir: str) -> str:
+    return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
+
+
+def _train(
+    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float
+) -> dict[str, float]:
+    """`train`'s loop, the lock held; `begun`: when `train` was called."""
+    run = config.run
+    ckpt_dir = os.path.join(run.run_dir, "checkpoints")
+    main = multihost.is_main()
+    with StopSignals(ckpt_dir) as stop:
+        epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize)
+        cfg = config.to_dict()
+        saved = start_epoch if resume else None
+        with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
+            if main:
+                os.makedirs(run.run_dir, exist_ok=True)
+                write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
+            log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
+            mngr = checkpoint.manager(ckpt_dir)
+
+        row = log.last_row
+        wall_before = row.get("wall_time", 0.0)
+        # (a run resumed from metrics written before this column: its time so far without compiling)
+        compiled_before = row.get("wall_time_with_compile", wall_before)
+        steps_before = float(np.sum(multihost.to_host(state.env_steps)))
+        size = rundir.megabytes(rundir.with_margin(rundir.tree_bytes(state)))
+        start = time.time()
+        bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
+                   unit="epoch", initial=start_epoch, total=run.epochs)
+        try:
+            for e in bar:
+                t = time.time()
+                state, metrics = epoch(state)
+                metrics = multihost.to_host(metrics)
+                now = time.time()
+                row = epoch_row(e, metrics, now - t, steps_before, wall_before + now - start,
+                                compiled_before + now - begun)
+                steps_before = row["env_steps_total"]
+                with rundir.disk_errors(f"writing the metrics of epoch {e} in {run.run_dir}",
+                                        _last_good(saved, ckpt_dir)):
+                    log.write(row)
+                bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
+                if bad:
+                    raise Diverged(f"diverged at epoch {e}: {bad}; {_last_good(saved, ckpt_dir)}")
+                bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
+                done = run.target_success > 0 and row["eval_success"] >= run.target_success
+                # read once: a signal arriving after this waits for the next epoch; one process's stops all
+                signum = multihost.largest(stop.signum or 0) or None
+                if e % run.checkpoint_every == 0 or e == run.epochs or done or signum:
+                    with rundir.disk_errors(f"saving checkpoint {e} in {ckpt_dir} (needs about {size})",
+                                            _last_good(saved, ckpt_dir)):
+                        checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
+                    saved = e
+                if signum:
+                    raise Interrupted(signum, e, run.run_dir)
+                if done:
+                    break
+        finally:
+            bar.close()
+            log.close()
+            mngr.close()
+    return row
+
+
+def enable_compilation_cache() -> None:
+    """JAX's persistent compilation cache, so that a second run of a config skips compiling."""
+    cache = os.environ.get("BIDAL_JAX_CACHE", os.path.join(os.path.expanduser("~"), ".cache", "bidal_jax", "xla"))
+    jax.config.update("jax_compilation_cache_dir", cache)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

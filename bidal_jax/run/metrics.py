@@ -1,0 +1,97 @@
+"""A run's records: metrics.csv (one row per epoch), TensorBoard, and files written atomically.
+
+`epoch_row` turns one epoch's metrics (seed axis first) into a row: the seed means of every
+metric, each seed's eval success, env steps and times. `MetricsLog` writes the rows; on
+resume it drops the rows written after the checkpoint the run continues from.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+
+import numpy as np
+from tensorboardX import SummaryWriter
+
+
+def write_atomic(path: str, text: str) -> None:
+    """Write `text` to `path` through a temporary file: a reader never sees half of it."""
+    with open(path + ".tmp", "w", newline="") as f:
+        f.write(text)
+    os.replace(path + ".tmp", path)
+
+
+class MetricsLog:
+    """metrics.csv (one row per epoch, seed means plus per-seed eval success) and TensorBoard.
+
+    With `resume_epoch`, the rows after that epoch (written after the checkpoint, before
+    the run stopped) are dropped from the CSV and purged from TensorBoard; new rows are appended.
+    With `writes=False` (every process of a run over several but process 0) nothing is written;
+    `last_row` is still the last row up to `resume_epoch`.
+    """
+
+    def __init__(self, run_dir: str, resume_epoch: int | None = None, writes: bool = True):
+        self.path = os.path.join(run_dir, "metrics.csv")
+        self.fields: list[str] | None = None
+        self.last_row: dict[str, float] = {}
+        self.writer = None
+        if resume_epoch is not None and os.path.exists(self.path):
+            self._truncate(resume_epoch, writes)
+        if writes:
+            purge = None if resume_epoch is None else resume_epoch + 1
+            self.writer = SummaryWriter(os.path.join(run_dir, "tb"), purge_step=purge)
+
+    def _truncate(self, epoch: int, writes: bool) -> None:
+        with open(self.path, newline="") as f:
+            reader = csv.DictReader(f)
+            rows = list(reader)
+        if not reader.fieldnames:
+            return
+        self.fields = list(reader.fieldnames)
+        # a row cut short by a kill has missing (None) values
+        kept = [r for r in rows if None not in r.values() and float(r["epoch"]) <= epoch]
+        if writes and len(kept) < len(rows):
+            with open(self.path + ".tmp", "w", newline="") as f:
+                writer = csv.DictWriter(f, self.fields)
+                writer.writeheader()
+                writer.writerows(kept)
+            os.replace(self.path + ".tmp", self.path)
+        self.last_row = {k: float(v) for k, v in kept[-1].items()} if kept else {}
+
+    def write(self, row: dict[str, float]) -> None:
+        self.last_row = row
+        if self.writer is None:
+            return
+        if self.fields is None:
+            self.fields = list(row)
+            with open(self.path, "w", newline="") as f:
+                csv.DictWriter(f, self.fields).writeheader()
+        # a run resumed from an older metrics.csv keeps its header: columns newer than it are left out
+        with open(self.path, "a", newline="") as f:
+            csv.DictWriter(f, self.fields, extrasaction="ignore").writerow(row)
+        for key, value in row.items():
+            if key != "epoch":
+                self.writer.add_scalar(key, value, int(row["epoch"]))
+        self.writer.flush()
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+
+def epoch_row(epoch: int, metrics: dict, epoch_seconds: float, steps_before: float, wall: float,
+              wall_with_compile: float) -> dict[str, float]:
+    """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times: `wall_time`
+    (`wall`: seconds of training, from when the programs were built) and `wall_time_with_compile` (seconds
+    from when `train` began, building and compiling the programs included), both summed over resumed sessions."""
+    row = {"epoch": epoch}
+    for key, value in sorted(metrics.items()):
+        row[key] = float(np.mean(value))
+    for i, value in enumerate(np.atleast_1d(metrics["eval_success"])):
+        row[f"eval_success_seed{i}"] = float(value)
+    steps = float(np.sum(metrics["env_steps"]))
+    row["env_steps_total"] = steps
+    row["wall_time"] = wall
+    row["wall_time_with_compile"] = wall_with_compile
+    row["env_steps_per_second"] = (steps - steps_before) / max(epoch_seconds, 1e-9)
+    return row

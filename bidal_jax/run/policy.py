@@ -1,0 +1,104 @@
+"""A trained policy, loaded from a run's checkpoint: `load_policy(run_dir, checkpoint=None)`.
+
+Only what acting needs is read, with Orbax partial restore: the encoder and actor
+parameters, the normalisers and the evaluation key. The replay buffer, optimiser states and
+target networks are not, so a checkpoint whose buffer files were deleted still loads
+(`python -m experiments.evaluate` is its command line). `load_noise` restores, for a run trained
+with observation noise, the κ and σ its checkpoint's evaluation saw (paper Eq. 9).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import chex
+import jax
+import jax.numpy as jnp
+
+from bidal_jax import noise, normalizer
+from bidal_jax.acting import ACTING_NETWORKS, ActingParams, Policy, make_policy
+from bidal_jax.config import Config
+from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
+from bidal_jax.run import checkpoint
+
+# the part of a training state that acting needs (all that `load_policy` reads)
+ACTING_FIELDS = ("params", "proprio_norm", "goal_norm", "eval_key")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedPolicy:
+    """A trained agent as `load_policy` restores it; array leaves carry a leading seed axis [S].
+
+    `policy(seed)` is the deterministic policy of one seed; `eval_key[seed]` is the key of
+    that seed's evaluation at this checkpoint, so that `evaluate(env, policy(seed),
+    eval_key[seed], config.train.eval_envs)` reproduces the run's logged eval success.
+    """
+
+    config: Config
+    networks: Networks
+    params: ActingParams
+    eval_key: jax.Array
+    step: int
+
+    @property
+    def seeds(self) -> int:
+        return int(self.eval_key.shape[0])
+
+    def seed_params(self, seed: int) -> ActingParams:
+        return jax.tree.map(lambda x: x[seed], self.params)
+
+    def policy(self, seed: int = 0, explore: bool = False) -> Policy:
+        return make_policy(self.networks, self.config, self.seed_params(seed), explore)
+
+
+def _sizes(state: dict) -> dict:
+    """The env facts that applying the networks needs, from a checkpoint's array metadata (no
+    array is read); the image shape only matters to `init`, which acting never calls."""
+    return {
+        "proprio_size": int(state["proprio_norm"]["mean"].shape[-1]),
+        "goal_size": int(state["goal_norm"]["mean"].shape[-1]),
+        "action_size": int(state["params"]["actor"]["params"][ACTION_LAYER]["bias"].shape[-1]),
+        "image_shape": None,
+    }
+
+
+def load_policy(run_dir: str, checkpoint_step: int | str | None = None) -> TrainedPolicy:
+    """The acting parameters of a run: latest checkpoint, step N, or "best" (by eval success).
+
+    Raises `CheckpointError`.
+    """
+    directory = os.path.join(run_dir, "checkpoints")
+    step = checkpoint.resolve_step(directory, checkpoint_step)
+    config = Config.from_dict(checkpoint.read_config(directory, step), f"checkpoint {step} in {directory}")
+    saved = checkpoint.read_metadata(directory, step, ("state",))["state"]
+    networks = make_networks(config.agent, config.network, **_sizes(saved))
+    wanted = {name: saved[name] for name in ACTING_FIELDS}
+    wanted["params"] = {k: v for k, v in saved["params"].items() if k in ACTING_NETWORKS}
+    restored = checkpoint.restore_partial(directory, step, wanted)
+    params = ActingParams(
+        params=restored["params"],
+        proprio_norm=normalizer.NormalizerState(**restored["proprio_norm"]),
+        goal_norm=normalizer.NormalizerState(**restored["goal_norm"]),
+    )
+    return TrainedPolicy(config, networks, params, jnp.asarray(restored["eval_key"]), step)
+
+
+def load_noise(run_dir: str, trained: TrainedPolicy) -> noise.NoiseState | None:
+    """κ [S] and σ [S, F] of the observation noise (paper Eq. 9) at `trained`'s checkpoint, or None
+    for a run trained without noise (empty `noise_segments`). Training saves the noise state its
+    evaluation of that epoch used, so evaluating with it and `eval_key` reproduces the logged
+    success. Orbax partial restore of the `noise` leaves alone. Raises `CheckpointError`."""
+    segments = trained.config.train.noise_segments
+    if not noise.parse_segments(segments):
+        return None
+    directory = os.path.join(run_dir, "checkpoints")
+    saved = checkpoint.read_metadata(directory, trained.step, ("state",))["state"]
+    if "noise" not in saved:
+        raise checkpoint.CheckpointError(f"checkpoint {trained.step} in {directory} has no noise state "
+                                         f"although its config names noise segments {segments!r}")
+    restored = checkpoint.restore_partial(directory, trained.step, {"noise": saved["noise"]})["noise"]
+    state = noise.NoiseState(kappa=jnp.asarray(restored["kappa"]), sigma=jnp.asarray(restored["sigma"]))
+    chex.assert_shape(state.kappa, (trained.seeds,))
+    chex.assert_rank(state.sigma, 2)
+    return state

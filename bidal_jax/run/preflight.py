@@ -1,0 +1,226 @@
+"""Preparing a run: every check before anything is compiled or written.
+
+    config = prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make)
+
+`prepare` checks the config (`validate.check`), the run directory (a new run never mixes into
+an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
+config, what the env must offer, whether the training state fits in the device's memory and one
+checkpoint of it on the disk and, for a transfer, the source run; then it locks the run directory
+(`rundir.hold`, process 0), which `loop.train` releases when it ends: a second run, resumed run or
+experiment on it is refused. Errors are one line each: `ConfigError` (`rundir.RunDirInUse` among
+them), `CheckpointError`, `rundir.DiskError` (no space for one checkpoint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import time
+from typing import Any, Callable, Iterable
+
+import jax
+import jax.numpy as jnp
+
+from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
+from bidal_jax.run import multihost, rundir, transfer, validate
+from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config
+from bidal_jax.run.devices import device_layout
+from bidal_jax.train import make_train
+
+# fields whose value on resume may differ from the checkpoint's
+RESUME_MAY_CHANGE = ("epochs", "run_dir")
+# what a run writes into its directory; overwrite deletes nothing else
+RUN_FILES = frozenset(
+    {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
+)
+# share of the device's memory the training state may take (the rest: activations, copies)
+MEMORY_SHARE = 0.9
+def _config_differences(saved: dict, other: dict) -> list[tuple[str, str, object, object]]:
+    """(group, field, saved value, other value) for each field that differs, but for those that may change."""
+    return [
+        (group, field, value, other.get(group, {}).get(field))
+        for group, values in saved.items()
+        for field, value in values.items()
+        if field not in RESUME_MAY_CHANGE and other.get(group, {}).get(field) != value
+    ]
+
+
+def _check_config_json(run_dir: str, saved: dict, where: str) -> None:
+    """Refuse a checkpoint whose config differs from the run's config.json (one from another run)."""
+    try:
+        with open(os.path.join(run_dir, "config.json")) as f:
+            recorded = json.load(f)
+    except (OSError, ValueError):
+        return  # a missing or damaged copy is rewritten from the checkpoint's config
+    differences = _config_differences(saved, recorded)
+    if differences:
+        group, field = differences[0][:2]
+        what = {"env": "another env", "agent": "another agent"}.get(field) or (
+            "another network shape" if group == "network" else f"another {group} config"
+        )
+        listed = ", ".join(f"{f} {s!r}" for _, f, s, _ in differences)
+        recorded_values = ", ".join(f"{o!r}" for *_, o in differences)
+        raise CheckpointError(
+            f"{where} was written for {what}: it has {listed} where the run's config.json has {recorded_values}"
+        )
+
+
+def resumed_config(run_dir: str, given: dict[str, Any]) -> Config:
+    """The config of the run in `run_dir`: its latest checkpoint's, with `given["epochs"]` if
+    given; any other given field that differs from the checkpoint's is refused. Reads only."""
+    ckpt_dir = os.path.join(run_dir, "checkpoints")
+    if not os.path.isdir(run_dir):
+        raise CheckpointError(f"--resume: run directory {run_dir} does not exist")
+    step = latest_step(ckpt_dir)
+    if step is None:
+        raise CheckpointError(f"--resume: no checkpoint in {ckpt_dir} (to start the run again, use --overwrite)")
+    where = f"checkpoint {step} in {ckpt_dir}"
+    try:
+        config = Config.from_dict(read_config(ckpt_dir, step), where)
+    except ConfigFormatError as err:
+        raise CheckpointError(str(err)) from err
+    saved = config.to_dict()  # with the defaults of fields newer than the checkpoint
+    _check_config_json(run_dir, saved, where)
+    for values in saved.values():
+        for field, value in values.items():
+            if field in given and field not in RESUME_MAY_CHANGE and given[field] != value:
+                raise ConfigError(
+                    f"{option(field)} {given[field]} differs from the checkpoint's {value}; "
+                    "a resumed run keeps its config (only --epochs may change)"
+                )
+    run = dataclasses.replace(config.run, run_dir=run_dir, epochs=given.get("epochs", config.run.epochs))
+    if run.epochs < step:
+        raise ConfigError(f"--epochs {run.epochs}: must be at least the checkpoint's epoch {step}")
+    return dataclasses.replace(config, run=run)
+
+
+def check_run_dir(run_dir: str, overwrite: bool) -> None:
+    """A new run never mixes into an existing one; overwrite only deletes what a run writes."""
+    if os.path.exists(run_dir) and not os.path.isdir(run_dir):
+        raise ConfigError(f"--run-dir {run_dir}: is a file, not a directory")
+    entries = sorted(e for e in os.listdir(run_dir) if e != rundir.LOCK_FILE) if os.path.isdir(run_dir) else []
+    if entries and not overwrite:
+        raise ConfigError(
+            f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run "
+            "or --overwrite to delete it"
+        )
+    foreign = [e for e in entries if e not in RUN_FILES]
+    if foreign:
+        raise ConfigError(
+            f"--overwrite: refusing to delete {run_dir}: it holds {foreign[0]!r}, which a run does not write"
+        )
+
+
+def state_bytes(env, config: Config) -> int:
+    """Bytes of the seeds' whole training state (replay buffer included), from `jax.eval_shape`: nothing is
+    allocated."""
+    init, _ = make_train(env, config)
+    keys = jax.ShapeDtypeStruct((config.run.seeds, 2), jnp.uint32)
+    return rundir.tree_bytes(jax.eval_shape(jax.vmap(init), keys))
+
+
+def device_memory() -> int:
+    """Bytes of memory of this process's first device: the accelerator's limit, or the host's RAM on a CPU."""
+    stats = jax.local_devices()[0].memory_stats() or {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"])
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_memory(needed: int, available: int, seeds: int) -> None:
+    """Refuse a training state whose share on one device (`needed` bytes) cannot fit in
+    `MEMORY_SHARE` of that device's memory."""
+    if needed > MEMORY_SHARE * available:
+        gib = 2.0**30
+        raise ConfigError(
+            f"--seeds {seeds}: the training state needs {needed / gib:,.1f} GiB, more than {MEMORY_SHARE:.0%} of the "
+            f"device's {available / gib:,.1f} GiB; use fewer seeds, envs or --buffer-episodes"
+        )
+
+
+def prepare(
+    given: dict[str, Any],
+    *,
+    env_names: Iterable[str],
+    make_env: Callable[..., Any],
+    resume: bool = False,
+    overwrite: bool = False,
+) -> Config:
+    """The config of the run that `given` (field -> value, e.g. a command line) asks for, after
+    every check; compiles and writes nothing. Raises ConfigError or CheckpointError.
+
+    With several processes, each checks (the same files: the same outcome) and they wait for
+    each other at the end, so that no process writes before every one has checked."""
+    if resume and overwrite:
+        raise ConfigError("--resume and --overwrite exclude each other: continue the run or delete it")
+    if resume and not given.get("run_dir"):
+        raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
+    env_names = tuple(env_names)
+    if given.get("run_dir"):  # a directory in use is refused before any other check names it
+        _main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
+    config = resolve(given)
+    validate.check(config, env_names=env_names)  # the values given
+    if resume:
+        config = resumed_config(given["run_dir"], given)
+        validate.check(config, env_names=env_names)  # the checkpoint's
+    else:
+        run = config.run
+        if not run.run_dir:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            run = dataclasses.replace(run, run_dir=os.path.join("runs", f"{run.env}-{run.agent}-{stamp}"))
+        check_run_dir(run.run_dir, overwrite)
+        config = dataclasses.replace(config, run=run)
+    # what the env must offer and whether the state fits (builds the env and traces init, no compile)
+    run = config.run
+    env = make_env(run.env, render=False)
+    validate.check_env_support(config.train, env)
+    whole = state_bytes(env, config)  # every seed's: what a checkpoint holds
+    check_memory(whole // len(device_layout(run.seeds, config.train, run.env_shards)[0]), device_memory(), run.seeds)
+    rundir.check_space(run.run_dir, whole)
+    if run.init_from and not resume:  # a resumed run continues its own checkpoint
+        transfer.check(env, config, make_env=make_env)
+    lock(run.run_dir, resume, overwrite)
+    multihost.barrier("bidal_jax.run.preflight.prepare")
+    return config
+
+
+def _main_decides(check: Callable[[], None], what: str) -> None:
+    """Run `check` on process 0 only (the one that locks and writes); every process raises if it
+    raised a ConfigError (process 0 that one, the others one naming `what`). Every process calls it."""
+    refused = None
+    if multihost.is_main():
+        try:
+            check()
+        except ConfigError as err:
+            refused = err
+    if multihost.largest(int(refused is not None)):
+        raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
+
+
+def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
+    """Lock `run_dir` for this run (process 0; `rundir.hold`) and check a new run's directory again
+    under the lock (a run that ended meanwhile may have filled it). Every process raises when
+    process 0 is refused: RunDirInUse or ConfigError."""
+
+    def take() -> None:
+        rundir.hold(run_dir)
+        try:
+            if not resume:
+                check_run_dir(run_dir, overwrite)
+        except ConfigError:
+            rundir.release(run_dir)
+            raise
+
+    _main_decides(take, f"run directory {run_dir}")
+
+
+def delete_run_dir(run_dir: str) -> None:
+    """Delete what a run directory that `check_run_dir(run_dir, overwrite=True)` accepted holds, but
+    its lock: process 0 deletes it, every process waits until it is gone."""
+    if multihost.is_main() and os.path.isdir(run_dir):
+        for name in set(os.listdir(run_dir)) - {rundir.LOCK_FILE}:
+            path = os.path.join(run_dir, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
+    multihost.barrier("bidal_jax.run.preflight.delete_run_dir")

@@ -1,0 +1,63 @@
+"""Where a training program's compile time goes: trace, lowering to StableHLO, and XLA's compile (its HLO
+passes and, on a GPU, LLVM/PTX code generation), for the main command's program and a NICOL image program.
+
+    python -m experiments.bench.compile_time --out compile.json
+    TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1 python -m experiments.bench.compile_time
+
+XLA's own phase timers (HLO passes, LLVM IR, PTX to SASS) print to stderr with the second form. JAX's
+persistent compilation cache is not used here: every figure is a cold XLA compile in this process.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+
+from experiments.bench.programs import seeded_program
+
+PROGRAMS = (("ur5_reach", "multimodal_bidal", 1), ("nicol_slide", "multimodal_bidal", 5))
+
+
+def stages(name: str, agent: str, seeds: int, backend: str) -> dict[str, float]:
+    """Seconds to build the env and the program, then to trace, lower and compile its init and epoch."""
+    times = {}
+    start = time.perf_counter()
+    init, epoch, *_ = seeded_program(name, agent, seeds, backend=backend)
+    times["build_env_and_program"] = time.perf_counter() - start
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    for label, fn, args in (("init", init, (keys,)), ("epoch", epoch, None)):
+        if args is None:
+            args = (jax.eval_shape(init, keys),)
+        t0 = time.perf_counter()
+        traced = fn.trace(*args)
+        t1 = time.perf_counter()
+        lowered = traced.lower()
+        t2 = time.perf_counter()
+        lowered.compile()
+        t3 = time.perf_counter()
+        times.update({f"{label}_trace": t1 - t0, f"{label}_lower": t2 - t1, f"{label}_xla_compile": t3 - t2})
+    times["total"] = time.perf_counter() - start
+    return times
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--backend", default="jax", choices=["jax", "warp"])
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    results = []
+    for name, agent, seeds in PROGRAMS:
+        row = {"env": name, "agent": agent, "seeds": seeds, "backend": args.backend, "device": str(jax.devices()[0]),
+               **stages(name, agent, seeds, args.backend)}
+        print(json.dumps(row), flush=True)
+        results.append(row)
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

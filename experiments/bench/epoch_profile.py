@@ -1,0 +1,108 @@
+"""Where a training epoch's time goes: a JAX profiler trace of one warm epoch, summarised.
+
+    python -m experiments.bench.epoch_profile --env nicol_slide --agent multimodal_bidal --seeds 1
+    python -m experiments.bench.epoch_profile --env planar_reach --seeds 3 --out runs/profile/planar
+
+Builds the preset's training program as `experiments.bench.throughput --devices 1` does, runs two epochs
+(compilation, warm-up), then traces a third with `jax.profiler.trace` (the trace, with a Perfetto
+JSON copy, stays in `--out` for TensorBoard or ui.perfetto.dev) and prints, per device stream and
+host thread, the seconds its events add up to, how many there are, and its largest operations.
+On a GPU the event count of the compute stream is the number of kernels an epoch launches: when
+it, rather than the work per kernel, sets the epoch's time, more seeds per device cost little and
+more devices gain little (docs/results.md, "Session 8").
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import os
+import time
+
+import jax
+
+import envs_mjx
+from bidal_jax.config import AGENTS, ConfigError
+from bidal_jax.run import validate
+from experiments.bench.programs import seeded_program
+
+
+def summarise(events: list[dict], top: int = 10) -> list[dict]:
+    """Per (process, thread) of a Chrome/Perfetto trace's complete ("X") events: the seconds they
+    add up to, their count and the `top` names by seconds; largest total first."""
+    names = {
+        (e["pid"], None): e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
+    }
+    names.update(
+        {
+            (e["pid"], e["tid"]): e["args"]["name"]
+            for e in events
+            if e.get("ph") == "M" and e.get("name") == "thread_name"
+        }
+    )
+    seconds, count = collections.Counter(), collections.Counter()
+    by_name = collections.defaultdict(collections.Counter)
+    for e in events:
+        if e.get("ph") != "X":
+            continue
+        where = (names.get((e["pid"], None), str(e["pid"])), names.get((e["pid"], e["tid"]), str(e["tid"])))
+        seconds[where] += e.get("dur", 0) / 1e6
+        count[where] += 1
+        by_name[where][e["name"]] += e.get("dur", 0) / 1e6
+    return [
+        {"process": p, "thread": t, "seconds": s, "events": count[(p, t)], "top": by_name[(p, t)].most_common(top)}
+        for (p, t), s in seconds.most_common()
+    ]
+
+
+def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10) -> tuple[float, list[dict]]:
+    """(the traced epoch's wall seconds, `summarise(..., top)` of its trace), written to `out`."""
+    init, epoch, *_ = seeded_program(name, agent, seeds)
+    state = init(jax.random.split(jax.random.PRNGKey(0), seeds))
+    for _ in range(2):  # compilation, then a warm epoch
+        state, metrics = epoch(state)
+        jax.block_until_ready(metrics)
+    with jax.profiler.trace(out, create_perfetto_trace=True):
+        start = time.perf_counter()
+        state, metrics = epoch(state)
+        jax.block_until_ready(metrics)
+        wall = time.perf_counter() - start
+    newest = max(glob.glob(os.path.join(out, "**", "perfetto_trace.json.gz"), recursive=True), key=os.path.getmtime)
+    with gzip.open(newest) as f:
+        trace = json.load(f)
+    return wall, summarise(trace["traceEvents"] if isinstance(trace, dict) else trace, top)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.bench.epoch_profile", description=__doc__.split("\n\n")[0]
+    )
+    parser.add_argument("--env", default="planar_reach", choices=envs_mjx.names())
+    parser.add_argument("--agent", default="proprio_baseline", choices=list(AGENTS))
+    parser.add_argument("--seeds", type=int, default=1)
+    parser.add_argument("--top", type=int, default=10, help="largest operations shown per stream or thread")
+    parser.add_argument("--streams", type=int, default=6, help="streams and threads shown, largest first")
+    parser.add_argument("--out", default="", help="trace folder (default: runs/profile/ENV-AGENT-SEEDS)")
+    args = parser.parse_args(argv)
+    try:
+        validate.check_field("seeds", args.seeds)
+    except ConfigError as err:
+        raise SystemExit(f"error: {err}") from err
+    out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
+    wall, rows = profile_epoch(args.env, args.agent, args.seeds, out, args.top)
+    device = jax.devices()[0]
+    print(
+        f"{args.env} {args.agent}, {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
+        f"traced epoch {wall:.2f} s (profiling slows it); trace in {out}"
+    )
+    for row in rows[: args.streams]:
+        print(f"\n{row['process']} / {row['thread']}: {row['seconds']:.3f} s in {row['events']:,} events")
+        for op, seconds in row["top"]:
+            print(f"  {seconds:8.3f} s  {op[:100]}")
+
+
+if __name__ == "__main__":
+    main()

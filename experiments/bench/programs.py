@@ -1,0 +1,53 @@
+"""The training program of an env's preset, laid out as a run lays it out: the benchmarks' shared start.
+
+`seeded_program(env, agent, seeds, ...)` builds the env (`make_env`: on MJX's JAX or MuJoCo Warp
+physics), the preset config (`bidal_jax.config.resolve`, with any `TrainConfig` overrides), the
+device layout (`bidal_jax.run.devices.device_layout`) and the seeds' one compiled program
+(`make_seeded`), as `python -m experiments.run` would.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+
+import envs_mjx
+from bidal_jax.config import TrainConfig, resolve
+from bidal_jax.run.devices import device_layout, make_seeded
+from bidal_jax.train import make_train
+
+
+class SeededProgram(NamedTuple):
+    """`make_seeded`'s init and epoch, with what they were built from and laid out on."""
+    init: Callable
+    epoch: Callable
+    config: TrainConfig
+    env: Any
+    devices: list
+    shards: int
+
+
+def make_env(name: str, backend: str, worlds: int, render: bool):
+    """The env `name` stepping its physics with `backend` ("jax" or "warp"), sized for `worlds` envs at once."""
+    env = envs_mjx.make(name, render=render)
+    if backend != "jax":
+        env.use_backend(backend, worlds=worlds)
+    return env
+
+
+def seeded_program(
+    name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1, backend: str = "jax",
+    train: dict | None = None,
+) -> SeededProgram:
+    """The training program of `seeds` vmapped seeds of the env's preset for `agent` (with the
+    `TrainConfig` overrides `train`) on the first `n_devices` devices, laid out as a run lays them
+    out (`devices.device_layout`), its env's physics on `backend`."""
+    preset = resolve({"env": name, "agent": agent})
+    config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})))
+    worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
+    env = make_env(name, backend, worlds, render=config.agent.uses_image)
+    devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
+    init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
+    return SeededProgram(init, epoch, config.train, env, devices, shards)

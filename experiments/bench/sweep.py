@@ -1,0 +1,120 @@
+"""Learning speed of a preset and its variants on one GPU: wall-clock time (process start, compilation
+included) and env steps to eval success thresholds, seeds vmapped in one program per variant.
+
+    python -m experiments.bench.sweep --env nicol_slide --agent multimodal_bidal --seeds 5 --epochs 60 \
+        --variant preset --variant updates_per_cycle=320 --variant updates_per_cycle=320,batch_size=4096 \
+        --out sweep.jsonl
+
+Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the env's preset for the agent;
+the variants run one after another in this process (each builds, compiles and trains its own program). A JSON
+line per epoch: variant, epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds
+since the process started (`process_seconds`, imports and every earlier variant included) and since the
+variant started (`variant_seconds`, its build and compilation included). `--physics warp` steps the env with
+MuJoCo Warp (envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+
+PROCESS_START = time.perf_counter()
+
+import jax  # noqa: E402 - imported after the process clock starts, so that process_seconds counts it
+import numpy as np  # noqa: E402
+
+from bidal_jax.config import TrainConfig  # noqa: E402
+from experiments.bench.programs import seeded_program  # noqa: E402
+
+THRESHOLDS = (0.5, 0.8, 0.9)
+
+
+def parse_variant(text: str) -> dict:
+    """`preset` -> {}; `a=1,b=2.5` -> TrainConfig overrides typed as the fields are."""
+    if text == "preset":
+        return {}
+    fields = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
+    overrides = {}
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        if name not in fields:
+            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field")
+        kind = {"int": int, "float": float, "str": str}.get(str(fields[name]), float)
+        overrides[name] = kind(value)
+    return overrides
+
+
+def train_variant(args, label: str, overrides: dict, sink) -> None:
+    start = time.perf_counter()
+    init, epoch, *_ = seeded_program(args.env, args.agent, args.seeds, backend=args.physics, train=overrides)
+    state = init(jax.random.split(jax.random.PRNGKey(args.seed), args.seeds))
+    for e in range(1, args.epochs + 1):
+        state, metrics = epoch(state)
+        success = np.asarray(metrics["eval_success"])
+        now = time.perf_counter()
+        row = {"variant": label, "overrides": overrides, "epoch": e, "eval_success": float(success.mean()),
+               "eval_success_seeds": [round(float(s), 4) for s in success],
+               "env_steps_per_seed": int(np.asarray(state.env_steps)[0]),
+               "updates_per_seed": int(np.asarray(state.updates)[0]),
+               "process_seconds": now - PROCESS_START, "variant_seconds": now - start}
+        sink.write(json.dumps(row) + "\n")
+        sink.flush()
+        print(f"{label} epoch {e}: {row['eval_success']:.3f} at {row['variant_seconds']:.0f} s", flush=True)
+        if args.minutes and row["variant_seconds"] > 60 * args.minutes:
+            break
+
+
+def first_reach(rows: list[dict], threshold: float) -> dict | None:
+    """The first epoch row whose mean eval success reaches `threshold`, or None."""
+    return next((r for r in rows if r["eval_success"] >= threshold), None)
+
+
+def report(paths: list[str]) -> str:
+    """Markdown table: per variant, epochs run, final success, and time / env steps to each threshold."""
+    by_variant: dict[str, list[dict]] = {}
+    for path in paths:
+        with open(path) as f:
+            for line in f:
+                row = json.loads(line)
+                by_variant.setdefault(f"{path.split('/')[-1]}: {row['variant']}", []).append(row)
+    head = ["variant", "epochs", "last-5 mean", *(f"to {t}: s / env steps" for t in THRESHOLDS), "s per epoch"]
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    for label, rows in by_variant.items():
+        cells = [label, str(rows[-1]["epoch"]), f"{np.mean([r['eval_success'] for r in rows[-5:]]):.3f}"]
+        for t in THRESHOLDS:
+            hit = first_reach(rows, t)
+            cells.append(f"{hit['variant_seconds']:.0f} / {hit['env_steps_per_seed']:,}" if hit else "—")
+        pace = (rows[-1]["variant_seconds"] - rows[0]["variant_seconds"]) / max(len(rows) - 1, 1)
+        cells.append(f"{pace:.2f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="nicol_slide")
+    parser.add_argument("--agent", default="multimodal_bidal")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--epochs", type=int, default=50)
+    parser.add_argument("--minutes", type=float, default=0.0, help="stop a variant after this many minutes (0: never)")
+    parser.add_argument("--physics", default="jax", choices=["jax", "warp"])
+    parser.add_argument("--variant", action="append", default=None, help="preset, or k=v,k=v TrainConfig overrides")
+    parser.add_argument("--out", help="JSON-lines file, appended to")
+    parser.add_argument("--report", nargs="+", help="print the table of these JSON-lines files and exit")
+    args = parser.parse_args(argv)
+    if args.report:
+        print(report(args.report))
+        return
+    if not args.out:
+        raise SystemExit("error: --out is required to train (or give --report FILES)")
+    variants = [(text, parse_variant(text)) for text in (args.variant or ["preset"])]
+    with open(args.out, "a") as sink:
+        for label, overrides in variants:
+            train_variant(args, label, overrides, sink)
+
+
+if __name__ == "__main__":
+    main()

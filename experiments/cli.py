@@ -1,0 +1,128 @@
+"""What the commands share: the config's options, starting a run, and the exit codes.
+
+- `run_parser()`: `python -m experiments.run`'s options, one per config field (their help is
+  the field's documentation); the paper experiments pass their extra options through it.
+- `start_run(given, ...)`: the one sequence that starts a run: prepare (every check,
+  nothing written), delete the run directory when asked, build the env, restore another
+  run's parameters when `init_from` asks, train.
+- `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
+  its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run directory
+  in use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed); 130 and 143
+  stopped by SIGINT and SIGTERM (a checkpoint was saved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from typing import Any, Callable, Sequence
+
+import envs_mjx
+from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunConfig, fields_help, option
+from bidal_jax.run import loop, preflight, transfer
+from bidal_jax.run.checkpoint import CheckpointError
+from bidal_jax.run.guard import Diverged, Interrupted
+from bidal_jax.run.rundir import DiskError
+
+EXIT_BAD_INPUT = 2
+EXIT_DIVERGED = 3
+EXIT_DISK = 4
+# what ends a command that trains: bad input, a diverged run, the disk, a stop signal
+FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, Interrupted)
+EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK))  # anything else: EXIT_BAD_INPUT
+CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
+
+
+def exit_code(err: Exception, resume_hint: str = "run the same command again to continue") -> int:
+    """Print the one line of an error that ends a command and return its exit code: a stop signal's
+    (its checkpoint saved; `resume_hint` says how to continue, "{run_dir}" standing for the run's
+    directory), else that of `EXIT_CODES`, or 2 (bad input)."""
+    if isinstance(err, Interrupted):
+        print(f"{err}; {resume_hint.format(run_dir=err.run_dir)}", file=sys.stderr)
+        return err.exit_code
+    print(f"error: {err}", file=sys.stderr)
+    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT)
+
+
+def _bool(text: str) -> bool:
+    if text.lower() not in ("1", "true", "yes", "0", "false", "no"):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be true or false")
+    return text.lower() in ("1", "true", "yes")
+
+
+def run_parser() -> argparse.ArgumentParser:
+    """Options from the config dataclasses; defaults (with the env presets) are resolved after parsing."""
+    parser = argparse.ArgumentParser(
+        prog="python -m experiments.run",
+        description="Train DDPG + HER (+ BidAL forward/inverse models) on an MJX task. Envs: "
+        + ", ".join(CHOICES["env"]) + ". Agents: " + ", ".join(CHOICES["agent"]) + ".",
+        epilog="Defaults are the config's; the env presets of bidal_jax/config.py override some of them "
+        "(--print-config shows the values a run would use).",
+    )
+    for group_name, cls in CONFIG_CLASSES.items():
+        group = parser.add_argument_group(f"{group_name} options")
+        helps = fields_help(cls)
+        for f in dataclasses.fields(cls):
+            kind = _bool if type(f.default) is bool else type(f.default)
+            choices = CHOICES.get(f.name)
+            listed = f"; one of: {', '.join(choices)}" if choices else ""
+            # None marks "not given", so that presets apply; the help shows the config default once
+            group.add_argument(option(f.name), type=kind, default=None, metavar=f.name.upper(),
+                               help=f"{helps[f.name]}{listed} (default: {f.default!r})")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --run-dir from its latest checkpoint, with its saved config "
+                        "(only --epochs may change)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="delete a non-empty --run-dir first (after every check passed)")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the effective config (presets applied) as JSON and exit")
+    return parser
+
+
+def parse_names(text: str, flag: str, kind: str, allowed: Sequence[str]) -> tuple[str, ...]:
+    """The names of a comma list option (`--tasks a,b`), in the order given; ConfigError naming
+    one that is not allowed, or an empty list."""
+    names = [name.strip() for name in text.split(",") if name.strip()]
+    for name in names:
+        if name not in allowed:
+            raise ConfigError(f"{flag} {text}: unknown {kind} {name!r}; allowed: {', '.join(allowed)}")
+    if not names:
+        raise ConfigError(f"{flag} {text!r}: name at least one of {', '.join(allowed)}")
+    return tuple(dict.fromkeys(names))
+
+
+def start_run(
+    given: dict[str, Any], *, resume: bool = False, overwrite: bool = False, quiet: bool = False, env: Any = None,
+    initialize: Callable[[Any], Any] | None = None,
+) -> tuple[Config, dict[str, float]]:
+    """Prepare the run `given` asks for (every check, nothing written), delete its directory with
+    `overwrite`, then train it: (its config, its last metrics row). `env` defaults to one made for
+    the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for.
+    Raises what `FAILURES` names."""
+    config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
+                               overwrite=overwrite)
+    if overwrite:
+        preflight.delete_run_dir(config.run.run_dir)
+    if env is None:
+        env = envs_mjx.make(config.run.env, render=config.agent.uses_image)
+    if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
+        initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)
+    return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize)
+
+
+def print_summary(run: RunConfig, row: dict[str, float]) -> None:
+    """The final eval success of a run and where its metrics, TensorBoard logs and checkpoints are."""
+    if not row:
+        print(f"nothing to train: the run is at epoch {run.epochs} already (raise --epochs to continue)")
+        return
+    seeds = ", ".join(f"{row[k]:.3f}" for k in row if k.startswith("eval_success_seed"))
+    print(
+        f"final eval success {row['eval_success']:.3f} (seeds: {seeds}) after {int(row['epoch'])} epochs, "
+        f"{row['env_steps_total']:.0f} env steps, {row['wall_time']:.0f} s\n"
+        f"metrics: {os.path.join(run.run_dir, 'metrics.csv')}\n"
+        f"tensorboard: tensorboard --logdir {os.path.join(run.run_dir, 'tb')}\n"
+        f"checkpoint: {os.path.join(run.run_dir, 'checkpoints')}"
+    )

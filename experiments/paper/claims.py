@@ -1,0 +1,312 @@
+"""The paper's three claims, measured on our run folders, each with a verdict by a stated rule:
+
+    python -m experiments.paper.claims --curves results/curves --noise results/noise --transfer results/transfer
+        --out results/claims.md [--stale TASK[,TASK]] [--last-n 10]
+
+(a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline
+    none; multimodal BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
+    experiments/paper/curves.py): each run's final success, the mean over seeds of each seed's last `--last-n`
+    epochs; a run has learned a task when it is at least LEARNED.
+(b) Noise (Sec. IV-B, Table II): at κ = 10 and 15 % multimodal BidAL's success is steadier (each run's
+    std over the last N epochs, the mean over runs) and higher (the mean over runs of each run's last-N
+    mean) than both baselines'. From `--noise` (experiments/paper/noise_robustness.py).
+(c) Transfer (Sec. IV-C, Fig. 6): reduced lift learns faster from nicol_slide's representation than
+    from scratch: fewer env steps to 0.5 success, larger AUC (per seed, experiments/paper/transfer_learning.py). From
+    `--transfer`.
+
+Verdicts. Each claim is a list of checks, each of which favours the claim, is against it, or is unclear.
+A comparison's check is its 95 % bootstrap interval over seeds (`stats.bootstrap_difference`): favours
+when the interval lies on the claimed side of 0, against when on the other, else unclear; a threshold's
+check favours or is against. "reproduced": every check favours; "reversed": none favours and one is
+against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer
+epochs than its budget: the curves grid's epochs per task, or the env and agent preset's for the noise
+and transfer runs, or its config's if more), its figures still shown. Runs of a task named by `--stale`
+(e.g. made before a fix of its physics; run folders record no physics version) get their verdict
+qualified "measured on runs that predate the fixed ... tasks".
+
+Exit codes: 0 written; 2 bad option (one `error: ...` line).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from typing import Sequence
+
+import numpy as np
+
+from bidal_jax.config import AGENTS
+from experiments import cli, report, stats
+from experiments.paper import grid, protocol
+
+PROG = "python -m experiments.paper.claims"
+LEARNED = 0.5  # final success at which a run has learned its task
+BIDAL = ("visual_bidal", "multimodal_bidal")
+OURS, VISUAL, LIFT = "multimodal_bidal", "visual_baseline", "nicol_lift"
+NOISE_KAPPAS = (0.10, 0.15)
+BASELINES = ("multimodal_baseline", "proprio_baseline")
+FAVOURS, AGAINST, UNCLEAR = "favours", "against", "unclear"
+NOT_MEASURED = "not measured"
+
+
+@dataclasses.dataclass(frozen=True)
+class Claim:
+    """One row of the claims table."""
+
+    claim: str
+    ours: str
+    paper: str
+    verdict: str
+    rule: str
+
+
+def compare(low: float, high: float, positive: bool) -> str:
+    """A comparison's check from the 95 % interval of its difference; `positive`: the claim says it is > 0."""
+    if low > 0 or high < 0:
+        return FAVOURS if (low > 0) == positive else AGAINST
+    return UNCLEAR
+
+
+def verdict(checks: Sequence[str]) -> str:
+    """"reproduced" (all favour), "reversed" (none favours, one is against) or "not reproduced"."""
+    if not checks:
+        raise ValueError("verdict: no checks")
+    if all(c == FAVOURS for c in checks):
+        return "reproduced"
+    return "reversed" if AGAINST in checks and FAVOURS not in checks else "not reproduced"
+
+
+def judged(checks: Sequence[str], gaps: Sequence[str], tasks: set[str], stale: set[str]) -> str:
+    """The verdict of `checks`, "not measured: ..." when the runs have `gaps`, qualified by the stale tasks used."""
+    text = f"{NOT_MEASURED}: {'; '.join(gaps[:3])}" + (f" (+{len(gaps) - 3} more)" if len(gaps) > 3 else "") \
+        if gaps else verdict(checks)
+    old = sorted(tasks & stale)
+    return text + (f"; measured on runs that predate the fixed {', '.join(old)} tasks" if old else "")
+
+
+def gap(name: str, run: dict | None, budget: int) -> str | None:
+    """Why a run cannot measure a claim: missing, or fewer epochs than `budget`; None if neither."""
+    if run is None:
+        return f"{name} missing"
+    done = int(run["epoch"][-1])
+    return f"{name} short ({done} of {budget} epochs)" if done < budget else None
+
+
+def figure(values: np.ndarray) -> str:
+    """A mean over seeds with its 95 % Student-t interval."""
+    mean, low, high = stats.student_interval(values)
+    return f"{mean:.3f} {stats.interval_text(low, high)}"
+
+
+def difference(a: Sequence[np.ndarray], b: Sequence[np.ndarray], digits: int = 3) -> tuple[str, float, float]:
+    """(text "+d [low, high]", low, high) of `stats.bootstrap_difference(a, b)`."""
+    diff, low, high = stats.bootstrap_difference(a, b)
+    return f"{diff:+,.{digits}f} {stats.interval_text(low, high, digits)}", low, high
+
+
+# ----- (a) learning curves ---------------------------------------------------------------------------
+
+
+def load_grid(curves_dir: str) -> dict[tuple[str, str], dict | None]:
+    """(task, agent) -> the run in CURVES/<task>/<agent> (`report.load_run`), None where it has no epochs."""
+    return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in protocol.TASKS for a in AGENTS}
+
+
+def finals(runs: dict[tuple[str, str], dict | None], last_n: int) -> dict[tuple[str, str], np.ndarray]:
+    """(task, agent) -> each seed's final success [S] (`report.final_per_seed`), for the runs that exist."""
+    return {key: report.final_per_seed(report.curves([run])[0], last_n) for key, run in runs.items() if run}
+
+
+def grid_gaps(runs: dict[tuple[str, str], dict | None]) -> list[str]:
+    budgets = {t: protocol.EPOCHS[t] for t in protocol.TASKS}
+    found = [gap(f"{t}/{a}", run, max(budgets[t], protocol.budget(run) if run else 0)) for (t, a), run in runs.items()]
+    return [g for g in found if g]
+
+
+def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale: set[str]) -> list[Claim]:
+    """Claim (a): four rows, from the curves grid."""
+    final, gaps, tasks = finals(runs, last_n), grid_gaps(runs), set(protocol.TASKS)
+    rule = f"learned: final success (mean over seeds of each seed's last {last_n} epochs) ≥ {LEARNED}"
+    rows = []
+    for name, agents, learns in ((f"(a) the BidAL agents ({', '.join(BIDAL)}) learn every task", BIDAL, True),
+                                 (f"(a) the visual baseline ({VISUAL}) learns no task", (VISUAL,), False)):
+        cells = {key: v for key, v in final.items() if key[1] in agents}
+        checks = [FAVOURS if (v.mean() >= LEARNED) == learns else AGAINST for v in cells.values()]
+        learned = sum(v.mean() >= LEARNED for v in cells.values())
+        pick = (min if learns else max)(cells, key=lambda k: cells[k].mean(), default=None)
+        ours = "—" if pick is None else (f"{'lowest' if learns else 'highest'}: {pick[1]} on {pick[0]} "
+                                         f"{figure(cells[pick])}; {learned} of {len(cells)} runs learned")
+        paper = "learn all tasks (Fig. 4)" if learns else "fails to learn any task (Fig. 4)"
+        rows.append(Claim(name, ours, paper, judged(checks or [UNCLEAR], gaps, tasks, stale), rule))
+    rows += best_claims(final, gaps, stale)
+    return rows
+
+
+def margin(final: dict[tuple[str, str], np.ndarray], tasks: Sequence[str]) -> tuple[str, str, float, float]:
+    """(best other agent by mean final success over `tasks`, text, low, high) of OURS − that agent."""
+    others = [a for a in AGENTS if a != OURS and all((t, a) in final for t in tasks)]
+    best = max(others, key=lambda a: np.mean([final[t, a].mean() for t in tasks]))
+    text, low, high = difference([final[t, OURS] for t in tasks], [final[t, best] for t in tasks])
+    return best, text, low, high
+
+
+def best_claims(final: dict[tuple[str, str], np.ndarray], gaps: list[str], stale: set[str]) -> list[Claim]:
+    """Claim (a), second part: multimodal BidAL best overall (over the tasks' mean), most clearly on lifting."""
+    tasks = [t for t in protocol.TASKS if (t, OURS) in final]
+    if not tasks or not any(all((t, a) in final for t in tasks) for a in AGENTS if a != OURS):
+        why = f"{NOT_MEASURED}: no {OURS} run beside another agent's on the same tasks"
+        return [Claim(c, "—", p, why, "") for c, p in (
+            (f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
+            (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"))]
+    best, text, low, high = margin(final, tasks)
+    overall = Claim(
+        f"(a) {OURS} is best overall", f"mean over tasks {text} over {best} (the best other)", "best overall (Fig. 4)",
+        judged([compare(low, high, True)], gaps, set(tasks), stale),
+        "bootstrap 95 % interval of the difference of the mean over tasks of final success, seeds resampled "
+        "within each run; favours when above 0")
+    per_task = {t: margin(final, [t]) for t in tasks}
+    margins = {t: final[t, OURS].mean() - final[t, per_task[t][0]].mean() for t in tasks}
+    if LIFT not in per_task:
+        return [overall, Claim(f"(a) {OURS} leads most clearly on {LIFT}", "—", "especially on lifting (Fig. 4)",
+                               f"{NOT_MEASURED}: {LIFT} missing", "")]
+    lift_best, lift_text, low, high = per_task[LIFT]
+    checks = [compare(low, high, True)]
+    checks += [FAVOURS if margins[LIFT] > margins[t] else AGAINST for t in tasks if t != LIFT]
+    rest = ", ".join(f"{t} {margins[t]:+.3f}" for t in tasks if t != LIFT)
+    return [overall, Claim(
+        f"(a) {OURS} leads most clearly on {LIFT}", f"{LIFT}: {lift_text} over {lift_best}; other tasks: {rest}",
+        "especially on lifting (Fig. 4)", judged(checks, gaps, set(tasks), stale),
+        "its margin over the best other agent on lifting is above 0 (bootstrap 95 %) and larger than on every "
+        "other task")]
+
+
+# ----- (b) noise -------------------------------------------------------------------------------------
+
+
+def noise_claims(noise_dir: str, stale: set[str]) -> list[Claim]:
+    """Claim (b): steadier and higher than both baselines at κ = 10 and 15 %."""
+    found, budgets = protocol.load_noise_curves(noise_dir) if os.path.isdir(noise_dir) else ({}, {})
+    agents = (OURS, *BASELINES)
+    gaps = [f"{a} missing" for a in agents if a not in budgets]
+    gaps += [f"{a} short ({len(found[NOISE_KAPPAS[0], a].epoch)} of {budgets[a]} epochs)" for a in agents
+             if a in budgets and len(found[NOISE_KAPPAS[0], a].epoch) < budgets[a]]
+    tasks = {report.load_run(found[NOISE_KAPPAS[0], a].run_dir)["env"] for a in agents if a in budgets}
+    measures = (
+        ("steadier", "each run's std of its success over the last N epochs", protocol.steadiness, False, 1),
+        ("higher", "each run's mean success over the last N epochs", report.final_per_seed, True, 0),
+    )
+    rows = []
+    for word, what, measure, positive, column in measures:
+        checks, ours, paper = [], [], []
+        for k in NOISE_KAPPAS:
+            paper.append(f"{k:.0%}: " + " vs ".join(f"{protocol.PAPER[k][a][column]:.3f}" for a in agents))
+            if (k, OURS) not in found:
+                continue
+            mine = measure(found[k, OURS], protocol.LAST_N[k])
+            cells = [f"{mine.mean():.4f}"]
+            for b in (b for b in BASELINES if (k, b) in found):
+                text, low, high = difference([mine], [measure(found[k, b], protocol.LAST_N[k])], 4)
+                checks.append(compare(low, high, positive))
+                cells.append(f"− {b} {text}")
+            ours.append(f"{k:.0%}: " + "; ".join(cells))
+        rows.append(Claim(
+            f"(b) under 10 and 15 % noise {OURS}'s success is {word} than both baselines'",
+            " / ".join(ours) or "—", " / ".join(paper) + f" ({', '.join(agents)}; Table II "
+            + ("±, \"mean standard deviation\")" if column else "means)"),
+            judged(checks or [UNCLEAR], gaps, tasks, stale),
+            f"per κ and baseline: bootstrap 95 % interval of {OURS} − baseline over runs of {what} (N = "
+            f"{', '.join(str(protocol.LAST_N[k]) for k in NOISE_KAPPAS)}) {'above' if positive else 'below'} 0"))
+    return rows
+
+
+# ----- (c) transfer ----------------------------------------------------------------------------------
+
+
+def transfer_claims(transfer_dir: str, stale: set[str]) -> list[Claim]:
+    """Claim (c): fewer env steps to 0.5 and a larger AUC from nicol_slide's representation than from scratch."""
+    runs = {name: grid.loaded(os.path.join(transfer_dir, name)) for name in ("transfer", "scratch", "source")}
+    gaps = [g for name in ("transfer", "scratch") if (g := gap(name, runs[name], protocol.budget(runs[name])
+                                                             if runs[name] else 0))]
+    tasks = {run["env"] for run in runs.values() if run} | ({protocol.SOURCE_ENV} if runs["transfer"] else set())
+    paper = "learns faster with the slide representation (Fig. 6; no figure given)"
+    if runs["transfer"] is None or runs["scratch"] is None:
+        return [Claim(f"(c) reduced lift learns faster from {protocol.SOURCE_ENV} ({what})", "—", paper,
+                      judged([], gaps, tasks, stale), "") for what in ("env steps to 0.5", "AUC")]
+    arms = {name: protocol.seed_measures(report.curves([runs[name]])[0]) for name in ("transfer", "scratch")}
+    rows = []
+    for key, positive, digits in (("env steps to 0.5", False, 0), ("AUC", True, 3)):
+        (a, a_cut), (b, b_cut) = arms["transfer"][key], arms["scratch"][key]
+        text, low, high = difference([a], [b], digits)
+        censored = a_cut.sum() + b_cut.sum()
+        note = f" ({censored} of {a.size + b.size} seeds censored at their run's env steps)" if censored else ""
+        rows.append(Claim(
+            f"(c) reduced lift learns faster from {protocol.SOURCE_ENV} ({key}, transfer − scratch)",
+            f"{a.mean():,.{digits}f} − {b.mean():,.{digits}f} = {text}{note}", paper,
+            judged([compare(low, high, positive)], gaps, tasks, stale),
+            f"bootstrap 95 % interval of transfer − scratch over seeds {'below' if not positive else 'above'} 0"))
+    return rows
+
+
+# ----- the report ------------------------------------------------------------------------------------
+
+
+def claims_table(rows: Sequence[Claim]) -> str:
+    return report.markdown_table(["claim", "ours (95 % interval)", "paper", "verdict", "rule"],
+                                 [[r.claim, r.ours, r.paper, r.verdict, r.rule] for r in rows])
+
+
+def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set[str], last_n: int,
+                  command: str) -> str:
+    rows = [*learning_claims(load_grid(curves_dir), last_n, stale), *noise_claims(noise_dir, stale),
+            *transfer_claims(transfer_dir, stale)]
+    return "\n".join([
+        "# The paper's three claims, measured",
+        "",
+        f"From the run folders {curves_dir}, {noise_dir} and {transfer_dir}. Intervals: 95 %, a Student-t "
+        "interval over seeds for a figure, a bootstrap over seeds (10,000 resamples, fixed seed) for a "
+        "difference. Verdict rule (experiments/paper/claims.py): every check favours the claim: reproduced; none "
+        "favours and one is against: reversed; otherwise not reproduced; a run missing or short: not measured.",
+        "",
+        claims_table(rows),
+        "",
+        *([f"Stale (--stale): {', '.join(sorted(stale))}, whose runs were made before the fix of the task; run "
+           "folders record no physics version, so the option names them.", ""] if stale else []),
+        f"Regenerate: `{command}`",
+        "",
+    ])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--curves", default=os.path.join("results", "curves"), help="the curves grid's folder")
+    parser.add_argument("--noise", default=os.path.join("results", "noise"), help="the noise experiment's folder")
+    parser.add_argument("--transfer", default=os.path.join("results", "transfer"), help="the transfer folder")
+    parser.add_argument("--out", default=os.path.join("results", "claims.md"), help="the Markdown file written")
+    parser.add_argument("--stale", default="", help="comma list of tasks whose runs predate a fix of the task "
+                        "(their verdicts say so)")
+    parser.add_argument("--last-n", type=int, default=10, help="epochs of the curves' final success")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        stale = set(cli.parse_names(args.stale, "--stale", "task", (*protocol.TASKS, protocol.TARGET_ENV))) \
+            if args.stale else set()
+        if args.last_n < 1:
+            raise ValueError(f"--last-n {args.last_n}: must be a positive integer")
+    except ValueError as err:
+        return cli.exit_code(err)
+    options = [f"--curves {args.curves}", f"--noise {args.noise}", f"--transfer {args.transfer}", f"--out {args.out}"]
+    options += [f"--stale {args.stale}"] * bool(args.stale) + [f"--last-n {args.last_n}"] * (args.last_n != 10)
+    text = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n, " ".join([PROG, *options]))
+    with open(args.out, "w") as f:
+        f.write(text)
+    print(f"{text}\nwritten to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

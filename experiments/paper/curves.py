@@ -1,0 +1,257 @@
+"""The learning curves (paper Fig. 4): every agent on every task, the same budget for
+every agent of a task.
+
+    python -m experiments.paper.curves [--tasks a,b] [--agents x,y] [--seeds 5] [--seed 0] [--epochs N]
+        [--out results/curves] [--held-starts] [--dry-run | --report] [--last-n 10]
+        [any learner or network option of experiments.run]
+
+The grid is the tasks planar_reach, ur5_reach, nicol_slide and nicol_lift × the five agents of
+`bidal_jax.config.AGENTS`; `--tasks` and `--agents` (comma lists) take a part of it. Each run
+is `--seeds` seeds vmapped as one program, in OUT/<task>/<agent>.
+
+Budget: one epoch count per task for every agent (`EPOCHS`, overridden for all tasks by
+`--epochs`): planar_reach 40, ur5_reach 30, nicol_slide 100, nicol_lift 100. These are the env
+presets of bidal_jax/config.py except two: ur5_reach gets 30 rather than its preset's 15 (too
+few for the visual agents), and planar_reach's image agents get the task's 40 rather than their
+preset's 20, so that every curve of a panel covers the same env steps. The other settings are the env
+presets' (NICOL: 512 envs, ...); learner and network
+options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to every run.
+
+Faithful to the paper by default: no held starts. `--held-starts` runs nicol_lift with half of
+its training episodes starting with the cube held (`exploration_starts` 0.5; the other tasks are
+unchanged), a labelled variant the paper does not use, written to results/curves-held by default
+(with `--tasks nicol_lift` only that task trains).
+
+`--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
+run dir, new/resume/done) and its estimated time on one H200 running the runs one after another
+(`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
+(`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
+whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
+is skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint
+starts again. The persistent compilation cache is not used, so that every run's
+`wall_time_with_compile` (metrics.csv; `wall_time` starts after compiling) holds a whole compilation.
+
+Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
+per task, one line per agent: eval success against env steps per seed, mean ± std over seeds;
+`experiments/report.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
+`--last-n` epochs, per agent and task, each run's wall time with its compilation, their total, and
+the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
+`wall_time`, marked "*": compilation not counted). `--report` trains nothing and writes only
+these, e.g. from run folders whose checkpoints were not kept (results/ holds no checkpoints:
+.gitignore).
+
+Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
+line, nothing written); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was
+saved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any, Sequence
+
+from bidal_jax.config import AGENTS, ConfigError
+from bidal_jax.run import multihost
+from experiments import cli, report
+from experiments.paper import grid
+from experiments.paper.grid import Arm
+from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per task, for every agent
+
+PROG = "python -m experiments.paper.curves"
+HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
+# estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
+# one H200, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline)
+# - NICOL, image agent: about 5 s/epoch (two such programs sharing the GPU: 10.5-11.5 s/epoch each;
+#   two per GPU beside small runs on a 4-GPU machine: ~14 s/epoch each), compile 140-220 s;
+# - NICOL, proprio_baseline: assumed 2 s/epoch, compile 90 s (a measured 15-seed proprio noise
+#   program: 135 s for 19 epochs, of which 90 s compile);
+# - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
+#   with compilation); 6 s/epoch and 60 s compile assumed for 5 seeds, either kind.
+_REACH = {"image": (6.0, 60.0), "proprio": (6.0, 60.0)}
+_NICOL = {"image": (5.0, 180.0), "proprio": (2.0, 90.0)}
+SECONDS = {"planar_reach": _REACH, "ur5_reach": _REACH, "nicol_slide": _NICOL, "nicol_lift": _NICOL}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = grid.experiment_parser(PROG, __doc__, "every run")
+    parser.add_argument(
+        "--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})"
+    )
+    parser.add_argument("--agents", default=",".join(AGENTS), help="comma list of agents (default all five)")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped as one program")
+    parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
+    parser.add_argument(
+        "--epochs",
+        type=int,
+        default=None,
+        help="epochs of every run of every task (default per "
+        "task: " + ", ".join(f"{t} {e}" for t, e in EPOCHS.items()) + ")",
+    )
+    parser.add_argument(
+        "--out", default=None, help="output folder (default results/curves, or results/curves-held with --held-starts)"
+    )
+    parser.add_argument(
+        "--held-starts",
+        action="store_true",
+        help=f"{HELD_TASK} starts {HELD_STARTS:g} of its "
+        "training episodes with the cube held (a labelled variant; the paper has none)",
+    )
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--dry-run", action="store_true", help="print the plan and its estimated time; write nothing")
+    mode.add_argument(
+        "--report",
+        action="store_true",
+        help="train nothing: write curves.png/.csv and table.md from the run folders that have epochs",
+    )
+    parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def make_arms(
+    tasks: Sequence[str], agents: Sequence[str], args: argparse.Namespace, extra: dict[str, Any], out: str
+) -> list[Arm]:
+    """The runs, task by task in the grid's order, each with its task's epochs for every agent."""
+    arms = []
+    for task in (t for t in TASKS if t in tasks):
+        held = {"exploration_starts": HELD_STARTS} if args.held_starts and task == HELD_TASK else {}
+        for agent in (a for a in AGENTS if a in agents):
+            given = {
+                "env": task,
+                "agent": agent,
+                "seeds": args.seeds,
+                "seed": args.seed,
+                **extra,
+                **held,
+                "epochs": args.epochs or EPOCHS[task],
+                "run_dir": os.path.join(out, task, agent),
+            }
+            arms.append(Arm(f"{task}/{agent}", given))
+    return arms
+
+
+def estimate(arm: Arm) -> float:
+    """Estimated seconds to train what is left of the run (`SECONDS`): its compilation and its
+    remaining epochs; 0 when it is done."""
+    step = grid.latest(arm)
+    if grid.status_at(step, arm.epochs) == "done":
+        return 0.0
+    kind = "image" if arm.config.agent.uses_image else "proprio"
+    per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
+    return compile_s + per_epoch * (arm.epochs - (step or 0))
+
+
+def duration(seconds: float) -> str:
+    """Seconds, with minutes or hours: "300 s (5.0 min)", "8,720 s (2.4 h)"."""
+    longer = f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
+    return f"{seconds:,.0f} s ({longer})"
+
+
+def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
+    """The plan: one line per run with its estimated time, then the estimated total."""
+    seconds = [estimate(arm) for arm in arms]
+    lines = [f"plan: {len(arms)} runs"]
+    lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
+    lines.append(
+        f"estimated time: {duration(sum(seconds))} on one H200 running the runs one after another "
+        "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
+    )
+    return "\n".join(lines)
+
+
+def seconds(run: dict) -> str:
+    """The run's last time with its compilation (`report.with_compile_times`), or its `wall_time` marked "*"."""
+    timed, with_compile = report.with_compile_times(run)
+    return f"{timed['wall_time'][-1]:,.0f} s" + ("" if with_compile else "*")
+
+
+def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
+    """Final success (mean ± std over seeds of each seed's last `last_n` epochs), the run's wall
+    time (`seconds`), and how far it got when it is unfinished."""
+    done = int(run["epoch"][-1])
+    progress = "" if done >= epochs else f", epoch {done} of {epochs}"
+    return f"{report.final_cell(curve, last_n)}, {seconds(run)}{progress}"
+
+
+def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
+    """Markdown: one row per agent, one column per task; a run without epochs is "—"."""
+    tasks = {arm.given["env"]: arm.epochs for arm in arms}
+    agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
+    by_dir = {c.run_dir: c for c in report.curves(list(runs.values()))}
+    head = ["agent", *(f"{task} ({epochs} epochs)" for task, epochs in tasks.items())]
+    rows = []
+    for agent in agents:
+        cells = [agent]
+        for arm in (a for a in arms if a.given["agent"] == agent):
+            run = runs.get(arm.name)
+            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n))
+        rows.append(cells)
+    return report.markdown_table(head, rows)
+
+
+def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
+    """The line naming the runs without epochs and those short of their epochs."""
+    missing = [arm.name for arm in arms if arm.name not in runs]
+    unfinished = [
+        f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
+        for arm in arms
+        if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
+    ]
+    if not missing and not unfinished:
+        return "No run is missing or unfinished."
+    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}."
+
+
+def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str | None:
+    """curves.png/.csv in `out` from the runs that have epochs; returns the text of table.md (None
+    if none has)."""
+    runs = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
+    if not runs:
+        return None
+    report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
+    total = sum(float(report.with_compile_times(r)[0]["wall_time"][-1]) for r in runs.values())
+    return "\n".join([
+        f"# {title}",
+        "",
+        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
+        "then the run's wall time (its last `wall_time_with_compile`, compilation included; * its last "
+        "`wall_time`, compilation not counted, where metrics.csv predates that column).",
+        "",
+        results_table(arms, runs, last_n),
+        "",
+        f"Total wall time of the runs: {duration(total)}.",
+        "",
+        gaps(arms, runs),
+        "",
+    ])
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args, rest = build_parser().parse_known_args(argv)
+    out = grid.out_dir(args, "curves")
+    try:
+        multihost.initialize()
+        tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
+        agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
+        arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
+    except ConfigError as err:
+        return cli.exit_code(err)
+    code = 0
+    if not args.report:
+        envs = grid.make_envs(arms)
+        print(plan_text(arms, envs), flush=True)
+        if args.dry_run:
+            print("dry run: nothing trained or written")
+            return 0
+        code = grid.train_arms(arms, envs, args.quiet)
+    variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
+    title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
+    if multihost.is_main():  # one process writes the results
+        grid.write_table(out, plot_results(out, arms, title, args.last_n))
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,183 @@
+"""Runs of a paper experiment, trained one after another and resumable (`curves`,
+`noise_robustness`, `transfer_learning`).
+
+An experiment is a list of `Arm`s: a name and the config fields of one run (`run_dir` and
+`epochs` resolved). `status` says what running it again does: "done" (its latest checkpoint is
+at its epochs: skipped), "resume" (an earlier checkpoint: continued from it) or "new" (no
+checkpoint: its directory is deleted and it starts again). `train_arms` trains them in-process
+(`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`): 0 done; 2 bad
+config or checkpoint, or a run directory in use (one `error: ...` line); 3 diverged; 4 the disk
+(no room for a checkpoint, or a write failed); 130 and 143 stopped by SIGINT and SIGTERM (a
+checkpoint was saved). Each run locks its own directory while it trains (`bidal_jax.run.rundir`),
+not the experiment's folder: two commands may share the folder (e.g. `experiments.paper.transfer_learning
+--arms source` and `--arms scratch`), but a run that another process trains is refused (exit 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+from typing import Any, Callable, Sequence
+
+import envs_mjx
+from bidal_jax.config import Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
+from bidal_jax.run import checkpoint, validate
+from experiments import cli, report
+
+# what passes through to every run: the learner and network options (the exploration starts are
+# each experiment's --held-starts) and the checkpoint interval
+PASS_THROUGH = frozenset(
+    {f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)} - {"exploration_starts"}
+) | {"checkpoint_every"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Arm:
+    """One run of an experiment: its name, its config fields, and what a fresh start does to the
+    initial state (`initialize`, e.g. the noise experiment's κ per seed; by default the transfer's
+    restore when the run has `init_from`, else nothing)."""
+
+    name: str
+    given: dict[str, Any]
+    initialize: Callable[[Any], Any] | None = None
+
+    @property
+    def run_dir(self) -> str:
+        return self.given["run_dir"]
+
+    @property
+    def epochs(self) -> int:
+        return self.given["epochs"]
+
+    @property
+    def config(self) -> Config:
+        """The run's config: defaults, presets, then its fields."""
+        return resolve(self.given)
+
+
+def experiment_parser(prog: str, doc: str, runs: str) -> argparse.ArgumentParser:
+    """The parser of an experiment `prog` (described by its module docstring `doc`) whose learner and
+    network options pass through to `runs` (`pass_through`)."""
+    return argparse.ArgumentParser(
+        prog=prog, description=doc.split("\n\n")[0], allow_abbrev=False,
+        epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
+        f"and --checkpoint-every are passed to {runs}.",
+    )
+
+
+def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
+    """The config fields of the options an experiment `prog` does not know itself, parsed as
+    experiments.run parses them; ConfigError for one that is not passed through."""
+    parser = cli.run_parser()
+    parser.prog = prog
+    # unset options are None; flags (--quiet, --resume, ...) are False unless given
+    given = {k: v for k, v in vars(parser.parse_args(list(argv))).items() if v is not None and v is not False}
+    for name in sorted(set(given) - PASS_THROUGH):
+        hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
+        raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
+    return given
+
+
+def out_dir(args: argparse.Namespace, name: str) -> str:
+    """--out, or results/NAME (results/NAME-held for the --held-starts variant)."""
+    return args.out or os.path.join("results", f"{name}-held" if args.held_starts else name)
+
+
+def checked_arms(args: argparse.Namespace, rest: Sequence[str], prog: str,
+                 make_arms: Callable[[dict[str, Any]], list[Arm]]) -> list[Arm]:
+    """An experiment's runs, made by `make_arms` from the options passed through (`pass_through`),
+    with --last-n and every run's values checked before the first one trains; ConfigError for a bad one."""
+    if args.last_n < 1:
+        raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
+    arms = make_arms(pass_through(rest, prog))
+    for arm in arms:
+        validate.check(arm.config, env_names=envs_mjx.names())
+    return arms
+
+
+def latest(arm: Arm) -> int | None:
+    """The epoch the run has reached: its last recorded epoch when its metrics hold all its epochs
+    (a finished run whose checkpoints were not kept, as in results/, is done), else the epoch of
+    its latest checkpoint (None: it has none)."""
+    run = loaded(arm.run_dir)
+    if run is not None and run["epoch"][-1] >= arm.epochs:
+        return int(run["epoch"][-1])
+    return checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
+
+
+def status_at(step: int | None, epochs: int) -> str:
+    """"done" (`latest` at `epochs`), "resume" (an earlier checkpoint) or "new" (none)."""
+    return "new" if step is None else "done" if step >= epochs else "resume"
+
+
+def status(arm: Arm) -> str:
+    """The run's `status_at` its latest checkpoint."""
+    return status_at(latest(arm), arm.epochs)
+
+
+def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
+    """Arm name -> its env, rendering only for agents that see images; one env per kind is shared."""
+    made: dict[tuple[str, bool], Any] = {}
+    envs = {}
+    for arm in arms:
+        key = (arm.given["env"], arm.config.agent.uses_image)
+        if key not in made:
+            made[key] = envs_mjx.make(key[0], render=key[1])
+        envs[arm.name] = made[key]
+    return envs
+
+
+def plan_line(arm: Arm, env) -> str:
+    """What the run is, its epochs and env steps per seed, and what training does with it."""
+    run, train = arm.config.run, arm.config.train
+    per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
+    source = f", parameters from {run.init_from}" if run.init_from else ""
+    step = latest(arm)
+    state = status_at(step, arm.epochs)
+    return (
+        f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
+        f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
+        f"[{state}" + (f", checkpoint at epoch {step}]" if state == "resume" else "]")
+    )
+
+
+def train_arm(arm: Arm, env, quiet: bool) -> None:
+    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done."""
+    state = status(arm)
+    if state == "done":
+        print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
+        return
+    resume = state == "resume"  # else a run stopped before its first checkpoint starts again
+    config, row = cli.start_run(arm.given, resume=resume, overwrite=not resume, quiet=quiet, env=env,
+                                initialize=arm.initialize)
+    print(f"{arm.name}:", end=" ")
+    cli.print_summary(config.run, row)
+
+
+def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
+    """Train the runs in order (`train_arm`) until one fails or is stopped; the exit code."""
+    try:
+        for arm in arms:
+            train_arm(arm, envs[arm.name], quiet)
+    except cli.FAILURES as err:
+        return cli.exit_code(err)
+    return 0
+
+
+def loaded(run_dir: str) -> dict | None:
+    """The run's metrics and config (`report.load_run`), or None while it has no epochs."""
+    try:
+        return report.load_run(run_dir)
+    except report.RunError:
+        return None
+
+
+def write_table(out: str, text: str | None) -> None:
+    """Write `text` to OUT/table.md and print it; None: no run has epochs yet."""
+    if text is None:
+        print("no epochs yet: nothing to plot")
+        return
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write(text)
+    print(f"\n{text}\nwritten to {out}")

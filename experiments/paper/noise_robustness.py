@@ -1,0 +1,172 @@
+"""Noise robustness (paper Sec. IV-B, Table II): `python -m experiments.paper.noise_robustness`.
+
+Trains multimodal_bidal, multimodal_baseline and proprio_baseline on nicol_slide with
+observation noise s + κ·N(0, σ) on `ee_pos`, `ee_rot` and `obj_pos` (σ: each feature's
+interquartile range over the clean history; `bidal_jax/noise.py`) at κ = 5, 10 and 15 %,
+5 runs each. Per agent, the 3 κ × 5 runs are ONE compiled program: 15 vmapped runs whose κ
+is data in the training state (run i has κ_{i // 5} and its own seed key).
+
+Writes into `--out` (default results/noise): one run directory per agent (`<agent>/`,
+metrics.csv with `eval_success_seed0..14`), `table.md` (the paper's Table II: per κ and
+agent, the mean over the 5 runs of each run's mean success over its last N epochs, N = 5 at
+5 % and 30 at 10 and 15 %, ± the std over the runs, beside the paper's figures; a run with fewer
+epochs than its budget (`protocol.budget`: the env and agent preset's, or its config's if more) is marked
+"short run"; then the steadiness of claim (b): each run's std of its success over those N epochs,
+the mean over runs; and the command that regenerates it),
+`curves.png` and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
+`--report` trains nothing and writes only these, from the run folders (results/ keeps no
+checkpoints: training again there would start the runs afresh).
+
+Resumable: a finished agent is skipped, an interrupted one resumed from its latest
+checkpoint; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
+and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
+the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
+transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
+option, config or checkpoint; 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+
+import envs_mjx
+from bidal_jax.config import ConfigError, resolve
+from bidal_jax.run import loop, multihost
+from experiments import cli, report
+from experiments.paper import grid
+from experiments.paper.grid import Arm
+from experiments.paper.protocol import (
+    KAPPAS,
+    LAST_N,
+    PAPER,
+    SEGMENTS,
+    load_noise_curves,
+    steadiness,
+)
+from experiments.paper.protocol import (
+    NOISE_AGENTS as AGENTS,
+)
+
+PROG = "python -m experiments.paper.noise_robustness"
+SIZE_OPTIONS = ("num_envs", "cycles_per_epoch", "updates_per_cycle", "batch_size", "buffer_episodes", "eval_envs")
+
+
+def run_kappas(runs: int) -> np.ndarray:
+    """κ of each vmapped run: KAPPAS[i // runs]."""
+    return np.repeat(np.asarray(KAPPAS, np.float32), runs)
+
+
+def agent_arm(agent: str, run_dir: str, given: dict, runs: int) -> Arm:
+    """One agent's 3 κ × `runs` program in `run_dir`: a run whose fresh state gets κ per seed."""
+    kappas = jnp.asarray(run_kappas(runs))
+
+    def with_kappas(state):
+        return state.replace(noise=state.noise.replace(kappa=kappas))
+
+    given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(KAPPAS) * runs}
+    return Arm(agent, given, initialize=with_kappas)
+
+
+def window_note(epochs: int, budget: int, last_n: int) -> str:
+    """" (19 epochs)", " (last 19 of 19 epochs)" when the run has fewer than the window, and "; short run:
+    19 of 40 epochs" added when it has fewer than its budget (its config's epochs)."""
+    window = f"last {epochs} of {epochs} epochs" if epochs < last_n else f"{epochs} epochs"
+    return f" ({window}" + (f"; short run: {epochs} of {budget} epochs" if epochs < budget else "") + ")"
+
+
+def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]) -> str:
+    """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper; then the
+    steadiness (`steadiness`, mean over runs) beside the paper's ±. `budgets`: each agent's epochs."""
+    agents = [a for a in AGENTS if any(agent == a for _, agent in curves)]
+    head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper"))]
+    steady_head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper's ±"))]
+    rows, steady_rows = [], []
+    for k in KAPPAS:
+        cells, steady = [f"{k:.0%}", str(LAST_N[k])], [f"{k:.0%}", str(LAST_N[k])]
+        for a in agents:
+            curve = curves.get((k, a))
+            if curve is None:
+                cells.append("— ")
+                steady.append("— ")
+            else:
+                mean, std, _ = report.final_success(curve, LAST_N[k])
+                cells.append(f"{mean:.3f} ± {std:.4f}{window_note(len(curve.epoch), budgets[a], LAST_N[k])}")
+                steady.append(f"{steadiness(curve, LAST_N[k]).mean():.4f}")
+            cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
+            steady.append(f"{PAPER[k][a][1]:.4f}")
+        rows.append(cells)
+        steady_rows.append(steady)
+    return "\n".join([
+        report.markdown_table(head, rows),
+        "",
+        "Steadiness: each run's std of its success over the same last N epochs, the mean over runs (paper "
+        "Sec. IV-B compares its ± as \"the mean standard deviation\" of the success rate; it does not say over what).",
+        "",
+        report.markdown_table(steady_head, steady_rows),
+        "",
+    ])
+
+
+def write_report(out: str) -> str:
+    """Write table.md, curves.png and curves.csv from the agents' run directories; return the table."""
+    found, budgets = load_noise_curves(out)
+    if not found:
+        return ""
+    report.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
+    text = f"{table(found, budgets)}\nRegenerate from the run folders: `{PROG} --report --out {out}`\n"
+    with open(os.path.join(out, "table.md"), "w") as f:
+        f.write(text)
+    return text
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", default=os.path.join("results", "noise"), help="results folder")
+    parser.add_argument("--env", default="nicol_slide", choices=envs_mjx.names())
+    parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
+    parser.add_argument("--runs", type=int, default=5, help="runs (seeds) per κ")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs per run (default: the env preset's)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
+    for name in SIZE_OPTIONS:
+        parser.add_argument("--" + name.replace("_", "-"), type=int, default=None, help="(default: the env preset's)")
+    parser.add_argument("--report", action="store_true", help="train nothing: write table.md, curves.png and "
+                        "curves.csv from the run folders in --out")
+    parser.add_argument("--quiet", action="store_true")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
+             **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
+    given["epochs"] = args.epochs or resolve(given).run.epochs
+    if args.report:
+        print(write_report(args.out) or f"no noise runs in {args.out}: nothing written")
+        return 0
+    try:
+        if args.runs < 1:
+            raise ConfigError(f"--runs {args.runs}: must be a positive integer")
+        multihost.initialize()
+    except ConfigError as err:
+        return cli.exit_code(err)
+    os.makedirs(args.out, exist_ok=True)
+    print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
+          f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
+    loop.enable_compilation_cache()
+    arms = [agent_arm(agent, os.path.join(args.out, agent), given, args.runs) for agent in args.agents]
+    code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)
+    if code:
+        return code
+    if multihost.is_main():  # one process writes the results
+        print(write_report(args.out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

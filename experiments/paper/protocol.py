@@ -1,0 +1,98 @@
+"""The paper's protocol (Sec. IV): what its experiments run and how their figures are measured.
+
+Shared by the experiments that train the runs (`curves`, `noise_robustness`, `transfer_learning`)
+and `claims`, which measures the paper's claims from their run folders:
+
+- the learning curves (Fig. 4): `TASKS` and their epoch budget `EPOCHS`, the same for every agent;
+- noise robustness (Table II): `KAPPAS`, the window `LAST_N` per κ, `NOISE_AGENTS`, the noised
+  `SEGMENTS`, the paper's figures `PAPER`; `kappa_curves` splits a run of 3 κ × R vmapped runs by
+  κ, `steadiness` is each run's std over its last N epochs, `load_noise_curves` reads them all;
+- transfer (Fig. 6): `SOURCE_ENV`, `TARGET_ENV`, `AGENT` and `THRESHOLDS`; `seed_measures` gives
+  each seed's AUC and env steps to each threshold.
+"""
+
+from __future__ import annotations
+
+import os
+
+import chex
+import numpy as np
+
+from bidal_jax.config import resolve
+from experiments import report
+
+# ----- learning curves (Fig. 4) ---------------------------------------------------------------
+# the budget: epochs per task, the same for every agent of the task (experiments.paper.curves)
+EPOCHS = {"planar_reach": 40, "ur5_reach": 30, "nicol_slide": 100, "nicol_lift": 100}
+TASKS = tuple(EPOCHS)
+
+# ----- noise robustness (Table II) --------------------------------------------------------------
+KAPPAS = (0.05, 0.10, 0.15)
+LAST_N = {0.05: 5, 0.10: 30, 0.15: 30}  # the paper's window per κ (Table II)
+NOISE_AGENTS = ("multimodal_bidal", "multimodal_baseline", "proprio_baseline")
+SEGMENTS = "ee_pos,ee_rot,obj_pos"
+# the paper's Table II: κ -> agent -> (mean, std)
+PAPER = {
+    0.05: {"multimodal_bidal": (0.874, 0.0127), "multimodal_baseline": (0.886, 0.0143),
+           "proprio_baseline": (0.882, 0.0191)},
+    0.10: {"multimodal_bidal": (0.764, 0.0222), "multimodal_baseline": (0.696, 0.0542),
+           "proprio_baseline": (0.699, 0.0519)},
+    0.15: {"multimodal_bidal": (0.615, 0.0320), "multimodal_baseline": (0.590, 0.0410),
+           "proprio_baseline": (0.554, 0.0358)},
+}
+
+
+def kappa_curves(run: dict, runs: int) -> list[report.Curve]:
+    """The run's curve split by κ: one curve per κ over its `runs` seeds."""
+    return [
+        report.Curve(f"κ = {k:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"], run["wall_time"],
+                   run["success"][:, i * runs:(i + 1) * runs])
+        for i, k in enumerate(KAPPAS)
+    ]
+
+
+def steadiness(curve: report.Curve, last_n: int) -> np.ndarray:
+    """Each run's std (numpy's population std) of its success over its last min(last_n, E) epochs [R]:
+    how steady its learning is under noise (the paper's "mean standard deviation", Sec. IV-B, is their mean)."""
+    chex.assert_rank(curve.success, 2)
+    return curve.success[-last_n:].std(axis=0)
+
+
+def budget(run: dict) -> int:
+    """A run's epoch budget: its config's epochs, or its env and agent preset's (this experiment's default) if more."""
+    preset = resolve({"env": run["env"], "agent": run["agent"]}).run.epochs
+    return max(int(run["config"]["run"].get("epochs", 0)), preset)
+
+
+def load_noise_curves(out: str) -> tuple[dict[tuple[float, str], report.Curve], dict[str, int]]:
+    """The noise runs in `out`: (κ, agent) -> its runs' curve (`kappa_curves`), and agent -> its epoch budget."""
+    found, budgets = {}, {}
+    for agent in NOISE_AGENTS:
+        run_dir = os.path.join(out, agent)
+        if os.path.isfile(os.path.join(run_dir, "metrics.csv")):
+            run = report.load_run(run_dir)
+            budgets[agent] = budget(run)
+            for k, curve in zip(KAPPAS, kappa_curves(run, run["seeds"] // len(KAPPAS))):
+                found[k, agent] = curve
+    return found, budgets
+
+
+# ----- transfer (Fig. 6) -------------------------------------------------------------------------
+SOURCE_ENV, TARGET_ENV, AGENT = "nicol_slide", "nicol_lift_reduced", "multimodal_bidal"
+THRESHOLDS = (0.3, 0.5)
+
+
+def seed_steps_to(curve: report.Curve, threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per seed [S]: env steps per seed at the first epoch whose success (that seed's) is ≥ `threshold`,
+    censored at the run's last env steps for a seed that never reaches it; and which seeds were censored."""
+    chex.assert_rank(curve.success, 2)
+    reached = curve.success >= threshold
+    steps = np.where(reached.any(axis=0), curve.env_steps[reached.argmax(axis=0)], curve.env_steps[-1])
+    return steps, ~reached.any(axis=0)
+
+
+def seed_measures(curve: report.Curve) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per-seed measures [S] of an arm, with which seeds are censored: AUC (mean success over the epochs)
+    and env steps to each of THRESHOLDS (`seed_steps_to`)."""
+    measures = {"AUC": (curve.success.mean(axis=0), np.zeros(curve.n_seeds, bool))}
+    return {**measures, **{f"env steps to {t:g}": seed_steps_to(curve, t) for t in THRESHOLDS}}

@@ -1,0 +1,247 @@
+"""The transfer experiment (paper Sec. IV-C, Fig. 6): reduced lift learns from scratch and
+from the representation of a sliding run.
+
+    python -m experiments.paper.transfer_learning [--seeds 5] [--out results/transfer] [--source RUN_DIR]
+        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch]
+        [any learner or network option of experiments.run]
+
+Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
+
+- `source/`: nicol_slide with its preset (`--source-epochs` epochs), unless `--source RUN_DIR`
+  names a finished one (`--source-checkpoint` picks a step or "best"; default the latest);
+- `transfer/`: nicol_lift_reduced whose encoder and forward and inverse models (`--init-parts`)
+  start from the source's (`bidal_jax/run/transfer.py`: seed i from the source's seed i, the proprio
+  rows and the proprio normaliser matched by segment name, optimisers fresh);
+- `scratch/`: the same run from a fresh start: same seeds, epochs and settings.
+
+Faithful to the paper by default: no held starts (`exploration_starts` 0 in both arms);
+`--held-starts` runs both arms with half of the training episodes starting with the cube held
+(0.5), a labelled variant written to results/transfer-held by default. Learner and network
+options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to all three runs.
+
+Then, from whatever runs have epochs, it writes `success.png` and `success.csv` (eval success
+against env steps per seed, mean ± std over seeds, both arms; `experiments/report.py`) and
+`table.md` (env steps and wall time to 0.3 and 0.5 success, area under the curve, final
+success; for the difference transfer − scratch of AUC and of env steps to 0.3 and 0.5, per seed
+and censored at the run's total env steps where a seed never gets there, a 95 % bootstrap
+interval over seeds and Welch's t interval, `experiments/stats.py`; and the command that
+regenerates it). Each run's metrics are its `metrics.csv`; times are its `wall_time_with_compile`
+(compilation included), or its `wall_time` (compilation not counted, said in the table) for runs
+recorded before that column. The persistent compilation cache is not used: both arms' programs
+are identical, and the second would otherwise skip its compilation. The source's training time
+is not in the transfer arm's times.
+
+Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
+skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
+again (`experiments/paper/grid.py`). Runs are driven in-process (`experiments/cli.py`: prepare,
+then train), in the order source, transfer, scratch, so that the transfer's checks run as early
+as they can. `--arms` trains
+only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
+scratch arm does not need the source), then `--arms transfer`; any of them writes the results
+of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
+whose checkpoints were deleted).
+
+Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
+line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from typing import Any, Sequence
+
+import numpy as np
+
+from bidal_jax.config import ConfigError, RunConfig, resolve
+from bidal_jax.run import multihost
+from experiments import cli, report, stats
+from experiments.paper import grid
+from experiments.paper.grid import Arm
+from experiments.paper.protocol import AGENT, SOURCE_ENV, TARGET_ENV, THRESHOLDS, seed_measures
+
+PROG = "python -m experiments.paper.transfer_learning"
+HELD_STARTS = 0.5
+ARMS = ("source", "transfer", "scratch")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = grid.experiment_parser(PROG, __doc__, "all three runs")
+    parser.add_argument("--out", default=None, help="output folder (default results/transfer, or results/transfer-held "
+                        "with --held-starts)")
+    parser.add_argument("--source", default=None, metavar="RUN_DIR", help="a nicol_slide run to transfer from "
+                        "instead of training OUT/source")
+    parser.add_argument("--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' "
+                        "(default: the latest)")
+    parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source (default: its preset)")
+    parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: preset)")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped (the source needs as many)")
+    parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
+    parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
+    parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
+                        "training episodes with the cube held (a labelled variant; the paper has none)")
+    parser.add_argument("--arms", default=",".join(ARMS), help="the runs this command trains, a comma list of "
+                        f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
+                        "runs can be trained by separate processes at once; 'none' only writes the results")
+    parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def parse_arms(text: str) -> frozenset[str]:
+    """The arms named by --arms ('none': no arm); ConfigError naming one that is not an arm."""
+    return frozenset() if text == "none" else frozenset(cli.parse_names(text, "--arms", "arm", ARMS))
+
+
+def source_dir(args: argparse.Namespace, out: str) -> str:
+    return args.source or os.path.join(out, "source")
+
+
+def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list[Arm]:
+    """The runs to make, in training order, with every config field they set (epochs resolved)."""
+    common = {"agent": AGENT, "seeds": args.seeds, "seed": args.seed, **extra}
+    target = {**common, "env": TARGET_ENV, "exploration_starts": HELD_STARTS if args.held_starts else 0.0}
+    source_ref = source_dir(args, out) + (f":{args.source_checkpoint}" if args.source_checkpoint else "")
+    runs = [] if args.source else [("source", {**common, "env": SOURCE_ENV}, args.source_epochs)]
+    runs += [
+        ("transfer", {**target, "init_from": source_ref, "init_parts": args.init_parts}, args.epochs),
+        ("scratch", target, args.epochs),
+    ]
+    arms = []
+    for name, given, epochs in runs:
+        given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
+        arms.append(Arm(name, {**given, "epochs": resolve(given).run.epochs}))
+    return arms
+
+
+def _cell(hit: report.Reached | None) -> tuple[str, str]:
+    if hit is None:
+        return "not reached", "not reached"
+    return f"{hit.env_steps:,.0f} (epoch {hit.epoch})", f"{hit.wall_time:,.0f} s"
+
+
+def _counted(with_compile: dict[str, bool]) -> str:
+    """What the arms' times count (`report.with_compile_times`: arm name -> whether with compilation)."""
+    without = [name for name, included in with_compile.items() if not included]
+    if not without:
+        return "compilation included"
+    return (f"compilation included but for {', '.join(without)}, whose metrics.csv predates "
+            "`wall_time_with_compile`: their `wall_time` starts after compiling")
+
+
+def results_table(curves: Sequence[report.Curve], last_n: int) -> str:
+    """Markdown, one row per arm: env steps and wall time to each threshold (first epoch whose seed
+    mean reaches it), normalised AUC, final success (mean ± std over seeds of the last `last_n` epochs)."""
+    head = ["arm", "seeds", "epochs", "env steps per seed"]
+    for t in THRESHOLDS:
+        head += [f"env steps to {t:g}", f"time to {t:g}"]
+    head += ["AUC", f"final success (last {last_n} epochs)"]
+    rows = []
+    for c in curves:
+        cells = [c.label, str(c.n_seeds), str(len(c.epoch)), f"{c.env_steps[-1]:,.0f}"]
+        for t in THRESHOLDS:
+            cells += _cell(report.time_to_threshold(c, t))
+        rows.append(cells + [f"{report.normalized_auc(c):.3f}", report.final_cell(c, last_n)])
+    return report.markdown_table(head, rows)
+
+
+def _arm_cell(values: np.ndarray, censored: np.ndarray, digits: int) -> str:
+    marks = f" ({censored.sum()} of {censored.size} censored*)" if censored.any() else ""
+    return f"{values.mean():,.{digits}f}{marks}"
+
+
+def difference_table(transfer: report.Curve, scratch: report.Curve) -> str:
+    """Markdown, one row per `seed_measures` measure: each arm's mean over seeds, transfer − scratch and its
+    95 % intervals over seeds (`stats.bootstrap_difference`, seeds resampled within each arm; Welch's t)."""
+    head = ["measure (per seed)", "transfer", "scratch", "transfer − scratch", "95 % bootstrap", "95 % Welch t"]
+    rows = []
+    for (name, (a, a_cut)), (b, b_cut) in zip(seed_measures(transfer).items(), seed_measures(scratch).values()):
+        digits = 3 if name == "AUC" else 0
+        diff, low, high = stats.bootstrap_difference([a], [b])
+        welch = stats.welch_interval(a, b)
+        rows.append([name, _arm_cell(a, a_cut, digits), _arm_cell(b, b_cut, digits), f"{diff:,.{digits}f}",
+                     stats.interval_text(low, high, digits), stats.interval_text(*welch[1:], digits)])
+    return report.markdown_table(head, rows)
+
+
+def difference_notes(transfer: report.Curve, scratch: report.Curve) -> list[str]:
+    """The section of table.md on the difference between the arms."""
+    return [
+        "## Transfer − scratch, 95 % intervals over seeds",
+        "",
+        "Per seed: AUC is its mean success over the epochs run; env steps to a threshold are those of the first "
+        "epoch whose success (that seed's) is at least it. *A seed that never reaches a threshold is censored at "
+        "its run's total env steps, which understates its time. Bootstrap: "
+        f"{stats.RESAMPLES:,} resamples of the seeds within each arm (numpy Generator seed {stats.BOOTSTRAP_SEED}), "
+        "the 2.5th and 97.5th percentiles of the difference of means; Welch: scipy.stats.ttest_ind(equal_var=False)"
+        " (— where it is undefined: one seed, or no spread in either arm).",
+        "",
+        difference_table(transfer, scratch),
+        "",
+    ]
+
+
+def regenerate_command(args: argparse.Namespace, out: str) -> str:
+    """The command that rewrites table.md, success.png and success.csv from the run folders alone."""
+    options = [f"--out {out}", f"--seeds {args.seeds}" if args.seeds != 5 else "",
+               "--held-starts" if args.held_starts else "", f"--last-n {args.last_n}" if args.last_n != 10 else ""]
+    return " ".join([PROG, "--arms none", *filter(None, options)])
+
+
+def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
+    """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
+    loaded = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
+    if not loaded:
+        return None
+    timed = {name: report.with_compile_times(r) for name, r in loaded.items()}
+    runs = {name: r for name, (r, _) in timed.items()}
+    counted = _counted({name: c for name, (_, c) in timed.items()})
+    curves = report.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
+    report.plot(curves, os.path.join(out, "success"), title=title)
+    notes = [
+        f"# {TARGET_ENV}: {title}",
+        "",
+        "Success is the seed mean of each epoch's eval success; a threshold is reached at the first epoch whose "
+        f"mean is at least it. Times are each run's seconds from the start of its training ({counted}; no "
+        "persistent compilation cache). AUC is the mean success over the epochs run.",
+        "",
+        results_table(curves, last_n),
+        "",
+    ]
+    by_label = {c.label: c for c in curves}
+    if {"transfer", "scratch"} <= set(by_label):
+        notes += difference_notes(by_label["transfer"], by_label["scratch"])
+    source = grid.loaded(source_dir)
+    if source is not None:
+        notes.append(
+            f"Source: {source['env']} {source['agent']} in {source_dir}, {len(source['epoch'])} epochs, "
+            f"{source['env_steps'][-1]:,.0f} env steps per seed, {source['wall_time'][-1]:,.0f} s (not in the times "
+            f"above); final seed-mean success {source['success'][-1].mean():.3f}."
+        )
+    return "\n".join(notes) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args, rest = build_parser().parse_known_args(argv)
+    out = grid.out_dir(args, "transfer")
+    try:
+        multihost.initialize()
+        train_names = parse_arms(args.arms)
+        arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(args, extra, out))
+    except ConfigError as err:
+        return cli.exit_code(err)
+    envs = grid.make_envs(arms)
+    print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
+    code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
+    variant = ", held starts" if args.held_starts else ""
+    title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
+    if multihost.is_main():  # one process writes the results
+        text = plot_results(out, arms, source_dir(args, out), title, args.last_n)
+        command = regenerate_command(args, out)
+        grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

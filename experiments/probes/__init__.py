@@ -1,0 +1,2 @@
+"""Diagnostic probes: can the vision branch locate the goal (`vision`), can the NICOL physics be
+solved by a scripted controller (`scripted`, the controller of `grasping`)."""

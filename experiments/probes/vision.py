@@ -1,0 +1,185 @@
+"""Can the vision branch see what the task needs? A supervised probe of the conv encoder.
+
+The visual agents (`visual_baseline`, `visual_bidal`) observe only the 42×42 image and the goal:
+to succeed they must read from the image where the achieved goal is (the hand's xy on
+planar_reach, the three joint angles on ur5_reach, the cube on NICOL) to within the task's
+success threshold ε. This probe trains the agents' vision branch (`networks.VisionBranch`, four
+3×3 conv layers with ELU and a dense layer, paper Sec. III-B) with a linear head by regression
+on the achieved goal, with labels, from frames of the env's start states, and reports on
+held-out frames: the RMSE per goal dimension (beside that of a constant prediction, the training
+mean), and the share of frames whose predicted achieved goal lies within ε of the true one
+("located"). A branch that cannot locate the achieved goal with supervision cannot give
+the actor and critic what success needs; one that can points at the learning signal instead.
+
+    python -m experiments.probes.vision --envs planar_reach,ur5_reach --conv-strides 3,2,2,2 2,2,1,1
+
+Frames: `--frames` start states of `env.reset` (each task draws its start, e.g. the arm's joint
+angles or the cube's place, uniformly over the task's range: many distinct states, where the
+frames of an episode are alike), a fifth held out. Training: Adam,
+`--steps` updates of `--batch` frames, on targets standardised by the training frames' mean
+and std. Prints a markdown table (one row per env and strides) and writes it to `--out`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import envs_mjx
+from bidal_jax.config import ConfigError, NetworkConfig, parse_strides
+from bidal_jax.networks import VisionBranch
+from bidal_jax.run import validate
+from experiments import cli
+
+PROG = "python -m experiments.probes.vision"
+HELD_OUT = 0.2  # share of the frames the probe is tested on
+
+
+class Probe(nn.Module):
+    """The agents' vision branch and a linear head: image [B, 42, 42, 1] -> achieved goal [B, G]."""
+
+    goal_size: int
+    strides: tuple[int, ...]
+    channels: int = NetworkConfig.conv_channels
+    features: int = NetworkConfig.vision_features
+
+    @nn.compact
+    def __call__(self, image: jax.Array) -> jax.Array:
+        return nn.Dense(self.goal_size)(VisionBranch(self.channels, self.features, self.strides)(image))
+
+
+def frames(env, key: jax.Array, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(images [n, 42, 42, 1], achieved goals [n, G]) of `n` start states of `env.reset`."""
+    obs = jax.jit(jax.vmap(lambda k: env.reset(k).obs))(jax.random.split(key, n))
+    return np.asarray(obs["image"]), np.asarray(obs["achieved_goal"])
+
+
+def fit(model: Probe, key: jax.Array, images: np.ndarray, targets: np.ndarray, steps: int, batch: int, lr: float):
+    """Parameters after `steps` Adam updates on the mean squared error, on random batches."""
+    key_init, key_batches = jax.random.split(key)
+    params = model.init(key_init, images[:1])
+    opt = optax.adam(lr)
+    images, targets = jnp.asarray(images), jnp.asarray(targets)
+
+    def loss(p, idx):
+        return jnp.mean((model.apply(p, images[idx]) - targets[idx]) ** 2)
+
+    def update(carry, k):
+        p, s = carry
+        grads = jax.grad(loss)(p, jax.random.randint(k, (batch,), 0, len(images)))
+        updates, s = opt.update(grads, s, p)
+        return (optax.apply_updates(p, updates), s), None
+
+    (params, _), _ = jax.jit(lambda p, ks: jax.lax.scan(update, (p, opt.init(p)), ks))(
+        params, jax.random.split(key_batches, steps))
+    return params
+
+
+def located(pred: np.ndarray, goals: np.ndarray, epsilon: float) -> float:
+    """Share of frames whose predicted achieved goal is within ε of the true one (the success test)."""
+    return float(np.mean(np.linalg.norm(pred - goals, axis=-1) < epsilon))
+
+
+def probe(env, strides: tuple[int, ...], key: jax.Array, n_frames: int, steps: int, batch: int, lr: float) -> dict:
+    """The probe's figures on `env`'s held-out frames: RMSE per goal dimension and share located,
+    of the probe and of the constant prediction."""
+    key_frames, key_fit = jax.random.split(key)
+    images, goals = frames(env, key_frames, n_frames)
+    cut = int(round(n_frames * (1 - HELD_OUT)))
+    (train_x, train_y), (test_x, test_y) = (images[:cut], goals[:cut]), (images[cut:], goals[cut:])
+    mean, std = train_y.mean(0), train_y.std(0) + 1e-6
+    model = Probe(env.observation_spec.goal_size, strides)
+    params = fit(model, key_fit, train_x, (train_y - mean) / std, steps, batch, lr)
+    apply = jax.jit(model.apply)
+    pred = np.concatenate([np.asarray(apply(params, test_x[i:i + 1024])) for i in range(0, len(test_x), 1024)])
+    pred = pred * std + mean
+    return {
+        "rmse": np.sqrt(np.mean((pred - test_y) ** 2, axis=0)),
+        "constant_rmse": np.sqrt(np.mean((mean - test_y) ** 2, axis=0)),
+        "located": located(pred, test_y, env.epsilon),
+        "constant": located(np.broadcast_to(mean, test_y.shape), test_y, env.epsilon),
+        "frames": (len(train_x), len(test_x)),
+    }
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0], allow_abbrev=False)
+    parser.add_argument(
+        "--envs", default="planar_reach,ur5_reach", help="comma list of envs (default planar_reach,ur5_reach)"
+    )
+    parser.add_argument(
+        "--conv-strides",
+        nargs="+",
+        default=[NetworkConfig.conv_strides],
+        help="one or more stride settings of the vision branch, e.g. 3,2,2,2 2,2,1,1",
+    )
+    parser.add_argument("--frames", type=int, default=16000, help="start-state frames per env, a fifth held out")
+    parser.add_argument("--steps", type=int, default=3000, help="Adam updates of the probe")
+    parser.add_argument("--batch", type=int, default=256, help="frames per update")
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    parser.add_argument("--seed", type=int, default=0, help="random seed of the frames and the probe")
+    parser.add_argument("--out", default="", help="also write the table to this file")
+    return parser
+
+
+def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]:
+    """The envs and stride settings asked for; ConfigError naming a bad one."""
+    envs = list(cli.parse_names(args.envs, "--envs", "env", envs_mjx.names()))
+    for text in args.conv_strides:
+        validate.check_field("conv_strides", text)
+    strides = [parse_strides(text) for text in args.conv_strides]
+    for flag, value, least in (("--frames", args.frames, 5), ("--steps", args.steps, 1), ("--batch", args.batch, 1)):
+        if value < least:
+            raise ConfigError(f"{flag} {value}: must be an integer >= {least}")
+    return envs, strides
+
+
+def row(name: str, env, strides: tuple[int, ...], result: dict) -> str:
+    rmse = ", ".join(f"{x:.3f} ({c:.3f})" for x, c in zip(result["rmse"], result["constant_rmse"]))
+    return (
+        f"| {name} | {','.join(map(str, strides))} | {env.epsilon:g} | {rmse} | {result['located']:.3f} | "
+        f"{result['constant']:.3f} | {result['frames'][0]:,} / {result['frames'][1]:,} |"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        envs, strides = checked(args)
+    except ConfigError as err:
+        return cli.exit_code(err)
+    lines = [
+        "| env | conv strides | ε | held-out RMSE per goal dimension (constant prediction) | located (within ε) | "
+        "constant prediction | "
+        "frames train / held out |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    print("\n".join(lines), flush=True)
+    for name in envs:
+        env = envs_mjx.make(name, render=True)
+        for s in strides:
+            start = time.time()
+            lines.append(
+                row(
+                    name,
+                    env,
+                    s,
+                    probe(env, s, jax.random.PRNGKey(args.seed), args.frames, args.steps, args.batch, args.lr),
+                )
+            )
+            print(f"{lines[-1]}  ({time.time() - start:.0f} s)", flush=True)
+    if args.out:
+        with open(args.out, "w") as f:
+            f.write("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

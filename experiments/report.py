@@ -1,0 +1,271 @@
+"""Reports of training runs, shared by the commands: reading runs, curves, tables and plots.
+
+- `load_run(run_dir)`: a run directory's `config.json` and `metrics.csv` as arrays.
+- `curves(runs, label_by, labels, panel_by)`: one `Curve` per run (per-seed eval success
+  against epochs, env steps and wall time), labelled and grouped into panels.
+- `final_per_seed`, `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
+  (the paper's "success rate over the last N epochs", Table II).
+- `plot(curves, prefix)`: PREFIX.png (one panel per env or `panel_by` value, the seed mean
+  with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
+  seed) and PREFIX.csv (the plotted numbers).
+- `markdown_table`, `summary_table`: Markdown tables.
+
+Times: metrics.csv's `wall_time` counts from when the training programs were built (compilation
+not counted), `wall_time_with_compile` from when training began (compilation included; absent
+from runs recorded before it); `with_compile_times(run)` gives the tables the latter where a run has it.
+
+Used by `python -m experiments.plot`, the paper experiments and the benchmarks. It imports
+neither JAX nor the environments (matplotlib only when it draws), so that it stays light.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import re
+from collections import Counter
+from typing import Callable, Mapping, Sequence
+
+import numpy as np
+
+X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
+SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
+WITH_COMPILE = "wall_time_with_compile"
+
+
+class RunError(ValueError):
+    """A run directory that cannot be read; the message is one line naming its path."""
+
+
+def _column(rows: list[dict[str, str]], name: str) -> np.ndarray:
+    return np.array([float(r[name]) for r in rows])
+
+
+def load_run(run_dir: str) -> dict:
+    """One run: its config, env, agent, seeds and per-epoch arrays.
+
+    Keys: "dir", "name" (basename), "config" (the parsed config.json), "env", "agent",
+    "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
+    "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
+    success of each seed). Raises RunError naming the path.
+    """
+    if not os.path.isdir(run_dir):
+        raise RunError(f"{run_dir}: no such run directory")
+    config_path, metrics_path = os.path.join(run_dir, "config.json"), os.path.join(run_dir, "metrics.csv")
+    for path in (config_path, metrics_path):
+        if not os.path.isfile(path):
+            raise RunError(f"{run_dir}: not a run directory (no {os.path.basename(path)})")
+    try:
+        with open(config_path) as f:
+            config = json.load(f)
+        env, agent, seeds = config["run"]["env"], config["run"]["agent"], int(config["run"]["seeds"])
+    except (ValueError, KeyError, TypeError) as err:
+        raise RunError(f"{config_path}: unreadable run config ({err!r})") from err
+    with open(metrics_path, newline="") as f:
+        rows = [r for r in csv.DictReader(f) if None not in r.values()]  # a row cut short is not an epoch
+    if not rows:
+        raise RunError(f"{metrics_path}: no epochs yet")
+    seed_columns = sorted((int(m.group(1)), k) for k in rows[0] if (m := SEED_COLUMN.match(k)))
+    if [i for i, _ in seed_columns] != list(range(seeds)):
+        raise RunError(f"{metrics_path}: expected columns eval_success_seed0..{seeds - 1} for {seeds} seeds")
+    try:
+        success = np.stack([_column(rows, k) for _, k in seed_columns], axis=1)
+        epoch, wall = _column(rows, "epoch"), _column(rows, "wall_time")
+        with_compile = _column(rows, WITH_COMPILE) if WITH_COMPILE in rows[0] else None
+        steps = _column(rows, "env_steps_total") / seeds
+    except (KeyError, ValueError) as err:
+        raise RunError(f"{metrics_path}: missing or malformed column ({err!r})") from err
+    return {
+        "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
+        "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
+        WITH_COMPILE: with_compile, "success": success,
+    }
+
+
+def with_compile_times(run: dict) -> tuple[dict, bool]:
+    """(`run` whose "wall_time" counts its compilation, True) where its metrics.csv has
+    `wall_time_with_compile`; else (`run` as it is, False: its times start after compiling)."""
+    if run[WITH_COMPILE] is None:
+        return run, False
+    return {**run, "wall_time": run[WITH_COMPILE]}, True
+
+
+@dataclasses.dataclass(frozen=True)
+class Curve:
+    """One line of the plot: a run's per-seed success [E, S] with its x axes [E]."""
+
+    panel: str
+    label: str
+    run_dir: str
+    epoch: np.ndarray
+    env_steps: np.ndarray
+    wall_time: np.ndarray
+    success: np.ndarray
+
+    @property
+    def mean(self) -> np.ndarray:
+        return self.success.mean(axis=1)
+
+    @property
+    def std(self) -> np.ndarray:
+        return self.success.std(axis=1)
+
+    @property
+    def n_seeds(self) -> int:
+        return self.success.shape[1]
+
+
+Label = str | Callable[[dict], str]
+
+
+def label_of(run: dict, by: Label) -> str:
+    """A run's label (or panel): a callable's value, or by key: "agent", "run" (basename), "env",
+    or a config value "GROUP.FIELD" (e.g. "train.intrinsic_lambda" -> "intrinsic_lambda=0.1")."""
+    if callable(by):
+        return by(run)
+    if by == "run":
+        return run["name"]
+    if by in ("agent", "env"):
+        return run[by]
+    group, _, field = by.partition(".")
+    if field not in run["config"].get(group, {}):
+        raise ValueError(f"{by}: not agent, run, env or a config key GROUP.FIELD of {run['dir']}")
+    return f"{field}={run['config'][group][field]}"
+
+
+def curves(
+    runs: Sequence[dict], label_by: Label = "agent", labels: Mapping[str, str] | None = None, panel_by: Label = "env"
+) -> list[Curve]:
+    """One curve per run, in the order given, in panels by `panel_by` (see `label_of`; e.g.
+    "train.<noise field>" for the noise experiment's one panel per κ).
+
+    `labels` maps run directories to names and overrides `label_by`. Runs of one panel that get
+    the same label from `label_by` are labelled by their basenames instead; a label still
+    shared in a panel (e.g. given twice in `labels`) is a ValueError.
+    """
+    overrides = {os.path.normpath(k): v for k, v in (labels or {}).items()}
+    unknown = set(overrides) - {os.path.normpath(r["dir"]) for r in runs}
+    if unknown:
+        raise ValueError(f"--label {sorted(unknown)[0]}: not one of the run directories given")
+    panels = [label_of(r, panel_by) for r in runs]
+    names = [label_of(r, label_by) for r in runs]
+    shared = Counter(zip(panels, names))
+    names = [r["name"] if shared[p, n] > 1 else n for r, p, n in zip(runs, panels, names)]
+    names = [overrides.get(os.path.normpath(r["dir"]), n) for r, n in zip(runs, names)]
+    clash = next((key for key, count in Counter(zip(panels, names)).items() if count > 1), None)
+    if clash:
+        raise ValueError(f"two runs in panel {clash[0]} are labelled {clash[1]!r}: name them with --label RUN_DIR=NAME")
+    return [
+        Curve(p, n, r["dir"], r["epoch"], r["env_steps"], r["wall_time"], r["success"])
+        for r, p, n in zip(runs, panels, names)
+    ]
+
+
+def final_per_seed(curve: Curve, last_n: int) -> np.ndarray:
+    """Each seed's mean success over its last min(last_n, E) epochs [S]."""
+    return curve.success[-last_n:].mean(axis=0)
+
+
+def final_success(curve: Curve, last_n: int) -> tuple[float, float, int]:
+    """(mean, std over seeds, epochs used) of each seed's mean success over its last
+    min(last_n, E) epochs: the paper's "success rate over the last N epochs" (Table II)."""
+    per_seed = final_per_seed(curve, last_n)
+    return float(per_seed.mean()), float(per_seed.std()), min(last_n, len(curve.epoch))
+
+
+@dataclasses.dataclass(frozen=True)
+class Reached:
+    """Where a curve first reached a threshold: its epoch, env steps per seed and wall time."""
+
+    epoch: int
+    env_steps: float
+    wall_time: float
+
+
+def time_to_threshold(curve: Curve, threshold: float) -> Reached | None:
+    """The first epoch whose seed-mean success is ≥ threshold, or None if none is."""
+    hits = np.flatnonzero(curve.mean >= threshold)
+    if not hits.size:
+        return None
+    i = hits[0]
+    return Reached(int(curve.epoch[i]), float(curve.env_steps[i]), float(curve.wall_time[i]))
+
+
+def normalized_auc(curve: Curve) -> float:
+    """Area under the seed-mean success curve over epochs, divided by their number (in [0, 1])."""
+    return float(curve.mean.mean())
+
+
+def write_csv(cs: Sequence[Curve], path: str, x: str = "env_steps") -> None:
+    """The plotted numbers, one row per curve and epoch: panel, label, x, mean, std, n_seeds."""
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["panel", "label", "x", "mean", "std", "n_seeds"])
+        for c in cs:
+            for xv, m, s in zip(getattr(c, x), c.mean, c.std):
+                writer.writerow([c.panel, c.label, float(xv), float(m), float(s), c.n_seeds])
+
+
+def plot(cs: Sequence[Curve], prefix: str, x: str = "env_steps", title: str = "") -> tuple[str, str]:
+    """Draw `cs` (one axes per panel, a colour per label across panels) into PREFIX.png and
+    write PREFIX.csv; returns both paths. Uses the Agg canvas, leaving pyplot's backend alone."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import EngFormatter
+
+    if x not in X_AXES:
+        raise ValueError(f"--x {x}: must be one of {', '.join(X_AXES)}")
+    panels = list(dict.fromkeys(c.panel for c in cs))
+    colours = {label: f"C{i % 10}" for i, label in enumerate(dict.fromkeys(c.label for c in cs))}
+    fig = Figure(figsize=(4.5 * len(panels), 3.6), layout="constrained")
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, panel in zip(axes, panels):
+        for c in (c for c in cs if c.panel == panel):
+            xs = getattr(c, x)
+            seeds = f"{c.n_seeds} seed" + ("s" if c.n_seeds > 1 else "")
+            ax.plot(xs, c.mean, color=colours[c.label], label=f"{c.label} ({seeds})")
+            ax.fill_between(xs, c.mean - c.std, c.mean + c.std, color=colours[c.label], alpha=0.2, linewidth=0)
+        ax.set(title=panel, xlabel=X_AXES[x], ylabel="eval success", ylim=(-0.02, 1.02))
+        if x == "env_steps":
+            ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 20k, 1.5M
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    if title:
+        fig.suptitle(title)
+    png, table = f"{prefix}.png", f"{prefix}.csv"
+    fig.savefig(png, dpi=120)
+    write_csv(cs, table, x)
+    return png, table
+
+
+def markdown_table(head: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A Markdown table: the header `head`, its rule, then one line per row of cells."""
+    lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+    return "\n".join(lines + ["| " + " | ".join(cells) + " |" for cells in rows])
+
+
+def final_cell(curve: Curve, last_n: int) -> str:
+    """`final_success` as "mean ± std", with "(last k)" when the curve has fewer than `last_n` epochs."""
+    mean, std, used = final_success(curve, last_n)
+    return f"{mean:.3f} ± {std:.3f}" + ("" if used == last_n else f" (last {used})")
+
+
+def summary_table(
+    runs: Sequence[dict], last_n: int, label_by: Label = "agent", labels: Mapping[str, str] | None = None,
+    threshold: float | None = None, panel_by: Label = "env",
+) -> str:
+    """Markdown: per curve (`curves`), final success mean ± std over seeds (`final_success`), the
+    normalised AUC, and with `threshold` the epoch, env steps per seed and time it was reached."""
+    panel = panel_by if isinstance(panel_by, str) else "panel"
+    head = [panel, "label", "seeds", "epochs", f"success, last {last_n} epochs (mean ± std over seeds)", "AUC"]
+    if threshold is not None:
+        head.append(f"first mean ≥ {threshold:g}: epoch, env steps per seed, time")
+    rows = []
+    for c in curves(runs, label_by, labels, panel_by):
+        cells = [c.panel, c.label, str(c.n_seeds), str(len(c.epoch)), final_cell(c, last_n), f"{normalized_auc(c):.3f}"]
+        if threshold is not None:
+            hit = time_to_threshold(c, threshold)
+            cells.append("never" if hit is None else f"{hit.epoch}, {hit.env_steps:,.0f}, {hit.wall_time:.0f} s")
+        rows.append(cells)
+    return markdown_table(head, rows)

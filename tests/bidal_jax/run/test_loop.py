@@ -1,0 +1,151 @@
+"""Resuming: a stopped and resumed run equals one that never stopped, bit for bit; SIGKILL at
+any moment (mid-save included) leaves a checkpoint to resume from; SIGINT and SIGTERM save
+one and exit with 130 and 143."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import jax
+import numpy as np
+import pytest
+
+from bidal_jax.run import checkpoint
+from experiments import run
+from tests.helpers import restored_state
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TINY = [
+    "--env", "planar_reach", "--agent", "proprio_baseline", "--num-envs", "4", "--cycles-per-epoch", "2",
+    "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--quiet",
+]
+EPOCHS = 6
+# the only columns that may differ between runs
+TIMING = ("wall_time", "wall_time_with_compile", "env_steps_per_second")
+TMP_SUFFIX = ".orbax-checkpoint-tmp"
+
+
+def metric_rows(run_dir) -> list[dict[str, str]]:
+    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
+        return [{k: v for k, v in row.items() if k not in TIMING} for row in csv.DictReader(f)]
+
+
+def assert_same_run(run_dir, reference) -> None:
+    assert metric_rows(run_dir) == metric_rows(reference)
+    (state, step), (expected, expected_step) = restored_state(run_dir), restored_state(reference)
+    assert step == expected_step == EPOCHS
+    names = [checkpoint.leaf_name(p) for p, _ in jax.tree_util.tree_flatten_with_path(expected)[0]]
+    for name, a, b in zip(names, jax.tree.leaves(state), jax.tree.leaves(expected)):
+        assert np.array_equal(np.asarray(a), np.asarray(b)), name
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """A run of EPOCHS epochs that never stopped."""
+    run_dir = tmp_path_factory.mktemp("straight") / "run"
+    assert run.main([*TINY, "--checkpoint-every", "1", "--epochs", str(EPOCHS), "--run-dir", str(run_dir)]) == 0
+    return run_dir
+
+
+def test_stopped_and_resumed_run_is_bit_identical(tmp_path, straight):
+    run_dir = tmp_path / "resumed"
+    assert run.main([*TINY, "--checkpoint-every", "1", "--epochs", str(EPOCHS // 2), "--run-dir", str(run_dir)]) == 0
+    # what a run killed after writing a row but before saving its checkpoint leaves: a row past
+    # the checkpoint, then a row cut short; resuming drops both
+    path = run_dir / "metrics.csv"
+    last = path.read_text().splitlines()[-1].split(",", 1)[1]
+    with open(path, "a") as f:
+        f.write(f"{EPOCHS // 2 + 1},{last}\n{EPOCHS // 2 + 2},0.5")
+    assert run.main(["--resume", "--run-dir", str(run_dir), "--epochs", str(EPOCHS), "--quiet"]) == 0
+    assert_same_run(run_dir, straight)
+
+
+def start(argv, log_dir, name) -> subprocess.Popen:
+    """`python -m experiments.run ARGV` in the background; its output goes to LOG_DIR/NAME.{out,err}."""
+    out, err = open(log_dir / f"{name}.out", "w"), open(log_dir / f"{name}.err", "w")
+    return subprocess.Popen([sys.executable, "-m", "experiments.run", *argv], cwd=REPO, stdout=out, stderr=err)
+
+
+def wait_for(condition, proc: subprocess.Popen, timeout: float = 300) -> bool:
+    """Poll `condition` every few ms; False if the process ended first."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if condition():
+            return True
+        if proc.poll() is not None:
+            return False
+        time.sleep(0.003)
+    raise TimeoutError(f"condition not met within {timeout} s")
+
+
+def kill(proc: subprocess.Popen) -> None:
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+
+
+def unfinished_saves(ckpt_dir) -> list[str]:
+    return [n for n in os.listdir(ckpt_dir) if TMP_SUFFIX in n] if os.path.isdir(ckpt_dir) else []
+
+
+def test_sigkill_at_any_moment_leaves_a_checkpoint_to_resume(tmp_path, straight):
+    run_dir, logs = tmp_path / "killed", tmp_path
+    ckpt_dir = run_dir / "checkpoints"
+    resume = ["--resume", "--run-dir", str(run_dir), "--quiet"]
+
+    # 1. as soon as the first checkpoint is complete (deleting nothing yet, or training on)
+    proc = start([*TINY, "--checkpoint-every", "1", "--epochs", str(EPOCHS), "--run-dir", str(run_dir)], logs, "first")
+    assert wait_for(lambda: checkpoint.latest_step(ckpt_dir) is not None, proc)
+    kill(proc)
+
+    # 2. in the middle of a save: an unfinished temporary step directory is on disk when the kill lands
+    killed_mid_save = False
+    for attempt in range(3):
+        proc = start(resume, logs, f"mid_save{attempt}")
+        if not wait_for(lambda: bool(unfinished_saves(ckpt_dir)), proc):
+            break  # the run finished first
+        kill(proc)
+        if unfinished_saves(ckpt_dir):
+            killed_mid_save = True
+            break
+    assert killed_mid_save
+    assert checkpoint.latest_step(ckpt_dir) is not None
+
+    # 3. while starting up and restoring
+    proc = start(resume, logs, "startup")
+    time.sleep(2.0)
+    kill(proc)
+
+    # 4. to the end: the same run as one that never stopped, and no unfinished save left behind
+    proc = start(resume, logs, "last")
+    assert proc.wait(timeout=300) == 0, (logs / "last.err").read_text()
+    assert unfinished_saves(ckpt_dir) == []
+    assert_same_run(run_dir, straight)
+
+
+def test_sigint_and_sigterm_save_a_checkpoint_and_exit(tmp_path):
+    run_dir, logs = tmp_path / "signalled", tmp_path
+    ckpt_dir = run_dir / "checkpoints"
+    never = ["--epochs", "100000", "--checkpoint-every", "100000"]  # only a signal saves
+
+    def rows() -> int:
+        return len(metric_rows(run_dir)) if (run_dir / "metrics.csv").exists() else 0
+
+    proc = start([*TINY, *never, "--run-dir", str(run_dir)], logs, "sigint")
+    assert wait_for(lambda: rows() >= 1, proc)
+    proc.send_signal(signal.SIGINT)
+    assert proc.wait(timeout=120) == 130
+    first = checkpoint.latest_step(ckpt_dir)
+    assert f"interrupted: saved checkpoint at epoch {first} in {ckpt_dir}" in (logs / "sigint.err").read_text()
+    assert [int(r["epoch"]) for r in metric_rows(run_dir)] == list(range(1, first + 1))
+
+    proc = start(["--resume", "--run-dir", str(run_dir), "--quiet"], logs, "sigterm")
+    assert wait_for(lambda: rows() > first, proc)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=120) == 143
+    second = checkpoint.latest_step(ckpt_dir)
+    assert second > first
+    assert f"interrupted: saved checkpoint at epoch {second} in {ckpt_dir}" in (logs / "sigterm.err").read_text()
+    assert [int(r["epoch"]) for r in metric_rows(run_dir)] == list(range(1, second + 1))

@@ -1,0 +1,38 @@
+"""Networks (bidal_jax/networks.py): each agent gets the networks it needs, the patch convolution
+equals Flax's, and the conv strides set the vision branch's feature map."""
+
+import flax.linen as nn
+import jax
+import numpy as np
+import pytest
+
+from bidal_jax.config import AGENTS, NetworkConfig
+from bidal_jax.networks import PatchConv, make_networks
+
+
+@pytest.mark.parametrize("agent", sorted(AGENTS))
+def test_every_agent_builds_the_networks_it_needs(agent):
+    spec = AGENTS[agent]
+    params = make_networks(spec, NetworkConfig(conv_channels=4), 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
+    assert ("encoder" in params) == spec.uses_image
+    assert ("forward" in params) == spec.bidal and ("inverse" in params) == spec.bidal
+
+
+@pytest.mark.parametrize("size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME")])
+def test_patch_conv_equals_flax_conv(size, stride, padding):
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
+    reference = nn.Conv(5, (3, 3), strides=(stride, stride), padding=padding)
+    params = reference.init(jax.random.PRNGKey(1), x)
+    ours = PatchConv(5, stride=stride, padding=padding).apply(params, x)
+    np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "strides, features", [("3,2,2,2", 2 * 2 * 4), ("2,2,1,1", 10 * 10 * 4), ("2,2,2,2", 3 * 3 * 4)]
+)
+def test_conv_strides_set_the_vision_branch_feature_map(strides, features):
+    """--conv-strides: the first layer unpadded, the others 'same'-padded, so the dense layer that
+    ends the vision branch sees H×W×C features (42 → 14 → 7 → 4 → 2 for 3,2,2,2)."""
+    config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides)
+    params = make_networks(AGENTS["visual_bidal"], config, 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
+    assert params["encoder"]["params"]["VisionBranch_0"]["Dense_0"]["kernel"].shape == (features, 64)

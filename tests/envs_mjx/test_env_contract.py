@@ -1,0 +1,129 @@
+"""Env contract tests (docs/design.md, tier 2), shared by every registered environment."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+import envs_mjx
+from bidal_jax import acting
+
+# nicol_lift_reduced is nicol_lift with proprio segments dropped: test_nicol.py checks it
+# against nicol_lift instead of compiling the whole contract again.
+ENV_NAMES = tuple(name for name in envs_mjx.names() if name != "nicol_lift_reduced")
+
+
+N_ENVS, N_STEPS = 10, 100  # 1,000 random steps, beyond the episode length too
+
+
+@functools.lru_cache(maxsize=None)
+def compiled(name):
+    """One env per name with its jitted, vmapped reset and a random rollout from given states.
+
+    The rollout depends on the env's step alone, so envs that share a step (nicol_slide and
+    nicol_lift) share its compiled program through the persistent compilation cache."""
+    env = envs_mjx.make(name)
+    resets = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), N_ENVS))
+
+    @jax.jit
+    def random_rollout(states, key):
+        # actions beyond [-1, 1] check the env's clipping
+        return acting.rollout(
+            env,
+            acting.random_policy(env.action_size, scale=1.5),
+            key,
+            states=states,
+            steps=N_STEPS,
+            record=lambda step: (
+                step.next_state.obs["proprio"],
+                step.next_state.data.qpos,
+                step.next_state.obs["achieved_goal"],
+            ),
+        )
+
+    return env, resets, random_rollout
+
+
+@functools.lru_cache(maxsize=None)
+def rollout(name, seed):
+    env, resets, random_rollout = compiled(name)
+    return random_rollout(resets, jax.random.PRNGKey(seed))
+
+
+@pytest.mark.parametrize("name", ENV_NAMES)
+def test_reset_and_step_match_the_spec(name):
+    env, resets, _ = compiled(name)
+    final, _ = rollout(name, 1)
+    for state in (resets, final):
+        for key, (shape, dtype) in env.observation_spec.shapes().items():
+            assert state.obs[key].shape == (N_ENVS, *shape), key
+            assert state.obs[key].dtype == dtype, key
+        assert state.obs["image"].shape == (N_ENVS, 42, 42, 1)
+        assert state.reward.shape == (N_ENVS,) and state.reward.dtype == jnp.float32
+    assert (np.asarray(resets.info["step"]) == 0).all() and (np.asarray(final.info["step"]) == N_STEPS).all()
+    assert env.episode_length > 0 and env.action_size > 0
+
+
+@pytest.mark.parametrize("name", ENV_NAMES)
+def test_no_nan_over_a_thousand_random_steps_and_deterministic(name):
+    _, (proprio, qpos, ag) = rollout(name, 1)
+    assert np.isfinite(np.asarray(proprio)).all()
+    assert np.isfinite(np.asarray(qpos)).all()
+    assert np.isfinite(np.asarray(ag)).all()
+    env, resets, random_rollout = compiled(name)
+    _, (proprio2, _, _) = random_rollout(resets, jax.random.PRNGKey(1))
+    np.testing.assert_array_equal(np.asarray(proprio), np.asarray(proprio2))
+    _, (proprio3, _, _) = rollout(name, 2)
+    assert not np.array_equal(np.asarray(proprio), np.asarray(proprio3))
+
+
+@pytest.mark.parametrize("name", ENV_NAMES)
+def test_reward_is_sparse_and_batched(name):
+    env, _, _ = compiled(name)
+    g = env.observation_spec.goal_size
+    goal = np.zeros((3, g), np.float32)
+    ag = goal.copy()
+    ag[1, 0] = 0.5 * env.epsilon
+    ag[2, 0] = 2.0 * env.epsilon
+    np.testing.assert_array_equal(np.asarray(env.compute_reward(ag, goal)), [0.0, 0.0, -1.0])
+
+
+@pytest.mark.parametrize("name", ENV_NAMES)
+def test_nan_action_is_rejected_outside_jit(name):
+    env, resets, _ = compiled(name)
+    state = jax.tree.map(lambda x: x[0], resets)
+    with pytest.raises(ValueError, match="NaN"):
+        env.step(state, jnp.full(env.action_size, jnp.nan))
+
+
+@pytest.mark.parametrize("name", ENV_NAMES)
+def test_mjx_matches_mujoco_mj_step(name):
+    """Same model, same controls: MJX (float32) and native MuJoCo (float64) agree on qpos within 1e-3 over 100
+    substeps; a mismatched integrator or actuator model differs by 0.05 or more."""
+    env, resets, _ = compiled(name)
+    m = env.mj_model
+    state = jax.tree.map(lambda x: x[3], resets)
+    d = mujoco.MjData(m)
+    d.qpos[:] = np.asarray(state.data.qpos)
+    d.qvel[:] = np.asarray(state.data.qvel)
+    d.ctrl[:] = np.asarray(state.data.ctrl)
+    d.mocap_pos[:] = np.asarray(state.data.mocap_pos)
+    d.mocap_quat[:] = np.asarray(state.data.mocap_quat)
+    mujoco.mj_forward(m, d)
+    rng = np.random.default_rng(0)
+    low, high = m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
+    ctrls = rng.uniform(low, high, size=(100 // env.n_substeps + 1, m.nu)).astype(np.float32)
+    mjx_step = jax.jit(mujoco.mjx.step)
+    data = state.data
+    for i in range(100):
+        if i % env.n_substeps == 0:
+            ctrl = ctrls[i // env.n_substeps]
+            # use the ctrl MJX will see (float32) on both sides
+            d.ctrl[:] = ctrl
+            data = data.replace(ctrl=jnp.asarray(ctrl))
+        mujoco.mj_step(m, d)
+        data = mjx_step(env.mjx_model, data)
+        np.testing.assert_allclose(np.asarray(data.qpos), d.qpos, atol=1e-3, err_msg=f"step {i}")

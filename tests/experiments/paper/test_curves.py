@@ -1,0 +1,197 @@
+"""The learning-curve grid (experiments/paper/curves.py) on hand-written run directories, without
+training (`no_nicol` and `fake_run` of conftest.py): the plan and its estimate, one budget per
+task, resuming, refusals, the held-starts variant and the report."""
+
+import csv
+import os
+
+import pytest
+
+import envs_mjx
+from bidal_jax import config as config_lib
+from experiments.paper import curves, grid
+
+TASKS = ("planar_reach", "ur5_reach", "nicol_slide", "nicol_lift")
+SMALL = ["--tasks", "planar_reach", "--agents", "proprio_baseline,visual_baseline,multimodal_baseline",
+         "--seeds", "2", "--epochs", "3", "--quiet"]
+
+
+def _arms(argv, out="out"):
+    args, rest = curves.build_parser().parse_known_args(argv)
+    return curves.make_arms(TASKS, tuple(config_lib.AGENTS), args, grid.pass_through(rest, curves.PROG), out)
+
+
+def test_the_grid_is_the_papers_tasks_and_agents():
+    assert curves.TASKS == TASKS and set(TASKS) < set(envs_mjx.names())  # nicol_lift_reduced is not in it
+    arms = _arms([])
+    assert [a.name for a in arms[:5]] == [f"planar_reach/{agent}" for agent in config_lib.AGENTS]
+    assert len(arms) == 20 and arms[-1].run_dir == os.path.join("out", "nicol_lift", "multimodal_bidal")
+
+
+@pytest.mark.parametrize("argv, expected", [
+    ([], {"planar_reach": 40, "ur5_reach": 30, "nicol_slide": 100, "nicol_lift": 100}),
+    (["--epochs", "7"], dict.fromkeys(TASKS, 7)),
+])
+def test_every_agent_of_a_task_gets_the_same_epochs(argv, expected):
+    arms = _arms([*argv, "--num-envs", "64"])
+    for task, epochs in expected.items():
+        configs = [a.config for a in arms if a.given["env"] == task]
+        # the resolved configs: no image-agent preset overrides the task's budget
+        assert {config.run.epochs for config in configs} == {epochs}
+        assert {config.train.num_envs for config in configs} == {64}  # learner options pass to every run
+
+
+def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, no_nicol, capsys):
+    out = tmp_path / "out"
+    assert curves.main(["--dry-run", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert not out.exists() and no_nicol == []
+    lines = printed.splitlines()
+    assert (
+        lines[0] == "plan: 20 runs" and len([line for line in lines if line.endswith(" s") and "[new]" in line]) == 20
+    )
+    for task in TASKS:
+        for agent in config_lib.AGENTS:
+            assert (
+                f"{task} {agent}, 5 seed(s), exploration starts 0; " in printed
+                and f"{out}/{task}/{agent} [new]" in printed
+            )
+    assert (
+        f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 128,000 = 12,800,000 env steps "
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 680 s"
+    ) in lines
+    assert (
+        f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
+        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
+    ) in lines
+    # 5 × 300 + 5 × 240 + 2 × (4 × 680 + 290)
+    assert "estimated time: 8,720 s (2.4 h) on one H200 running the runs one after another" in printed
+    assert lines[-1] == "dry run: nothing trained or written"
+
+
+def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(tmp_path, no_nicol, fake_run, capsys):
+    out = tmp_path / "out"
+    done, interrupted, unstarted = (
+        str(out / "planar_reach" / a) for a in ("proprio_baseline", "visual_baseline", "multimodal_baseline")
+    )
+    # finished, its checkpoints not kept (as in results/): its metrics hold all its epochs
+    fake_run(done, "planar_reach", [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None, agent="proprio_baseline")
+    fake_run(interrupted, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline")
+    os.makedirs(unstarted)
+    with open(os.path.join(unstarted, "metrics.csv"), "w") as f:
+        f.write("epoch\n")  # stopped before its first checkpoint
+    assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert no_nicol == []
+    assert "[done]; estimated 0 s" in printed
+    assert "[resume, checkpoint at epoch 1]; estimated 72 s" in printed  # 60 s compile + 2 epochs × 6 s
+    assert "[new]; estimated 78 s" in printed
+    assert curves.main([*SMALL, "--out", str(out)]) == 0
+    assert no_nicol == [
+        ("prepare", interrupted, True, False),
+        ("train", interrupted, True, False),
+        ("prepare", unstarted, False, True),
+        ("train", unstarted, False, False),
+    ]
+    assert f"planar_reach/proprio_baseline: done ({done})" in capsys.readouterr().out
+    assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s* |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
+
+
+@pytest.mark.parametrize(
+    "extra, expected",
+    [
+        (
+            ["--tasks", "foo"],
+            "error: --tasks foo: unknown task 'foo'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift",
+        ),
+        (
+            ["--tasks", "nicol_slide,nicol_lift_reduced"],
+            "error: --tasks nicol_slide,nicol_lift_reduced: unknown task "
+            "'nicol_lift_reduced'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift",
+        ),
+        (["--tasks", ","], "error: --tasks ',': name at least one of planar_reach, ur5_reach, nicol_slide, nicol_lift"),
+        (
+            ["--agents", "proprio_baseline,bidal"],
+            "error: --agents proprio_baseline,bidal: unknown agent 'bidal'; allowed: "
+            "proprio_baseline, visual_baseline, multimodal_baseline, visual_bidal, multimodal_bidal",
+        ),
+        # the pass-through options are experiments/paper/grid.py's (tested in full with transfer_learning)
+        (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
+        (["--last-n", "0"], "error: --last-n 0: must be a positive integer"),
+    ],
+)
+def test_bad_options_are_refused_before_anything_is_written(extra, expected, tmp_path, no_nicol, capsys):
+    out = tmp_path / "out"
+    assert curves.main(["--out", str(out), *extra]) == 2
+    assert capsys.readouterr().err.strip() == expected
+    assert no_nicol == [] and not out.exists()
+
+
+def test_held_starts_changes_only_nicol_lift_and_writes_elsewhere(tmp_path, monkeypatch, no_nicol, capsys):
+    plain, held = _arms([]), _arms(["--held-starts"])
+    for a, b in zip(plain, held):
+        changed = {k for k in a.given.keys() | b.given.keys() if a.given.get(k) != b.given.get(k)}
+        assert changed == ({"exploration_starts"} if a.given["env"] == "nicol_lift" else set()), a.name
+        assert b.given.get("exploration_starts", 0.5) == 0.5
+    monkeypatch.chdir(tmp_path)
+    assert curves.main(["--held-starts", "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert "nicol_lift multimodal_bidal, 5 seed(s), exploration starts 0.5; " in printed
+    assert "nicol_slide multimodal_bidal, 5 seed(s), exploration starts 0; " in printed
+    assert "results/curves-held/nicol_lift/multimodal_bidal [new]" in printed and "results/curves/" not in printed
+    assert not (tmp_path / "results").exists()
+
+
+REPORT = [
+    "--tasks",
+    "planar_reach,ur5_reach",
+    "--agents",
+    "proprio_baseline,multimodal_bidal",
+    "--seeds",
+    "2",
+    "--epochs",
+    "3",
+    "--last-n",
+    "2",
+    "--report",
+]
+
+
+def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(tmp_path, no_nicol, fake_run, capsys):
+    out = tmp_path / "out"
+    assert curves.main([*REPORT, "--out", str(out)]) == 0
+    assert "no epochs yet: nothing to plot" in capsys.readouterr().out and not out.exists()
+    written = {
+        ("planar_reach", "proprio_baseline"): ([(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None),
+        ("planar_reach", "multimodal_bidal"): ([(0.2, 0.2), (0.4, 0.6)], 60.0),  # with wall_time_with_compile
+        ("ur5_reach", "proprio_baseline"): ([(1.0, 0.0), (1.0, 0.0), (1.0, 1.0)], None),
+    }
+    for (task, agent), (rows, compile_seconds) in written.items():
+        fake_run(str(out / task / agent), task, rows, None, agent=agent, compile_seconds=compile_seconds)
+    assert curves.main([*REPORT, "--out", str(out)]) == 0
+    assert no_nicol == []
+    table = (out / "table.md").read_text()
+    # last 2 epochs per seed: planar proprio 0.6, 0.8; planar multimodal 0.3, 0.4; ur5 proprio 1.0, 0.5
+    assert "| agent | planar_reach (3 epochs) | ur5_reach (3 epochs) |" in table
+    # runs recorded before wall_time_with_compile show their wall_time, marked; the other its time with compile
+    assert "| proprio_baseline | 0.700 ± 0.100, 30 s* | 0.750 ± 0.250, 30 s* |" in table
+    assert "| multimodal_bidal | 0.350 ± 0.050, 80 s, epoch 2 of 3 | — |" in table
+    assert "Total wall time of the runs: 140 s (2.3 min)." in table
+    assert "Missing: ur5_reach/multimodal_bidal. Unfinished: planar_reach/multimodal_bidal (epoch 2 of 3)." in table
+    with open(out / "curves.png", "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    with open(out / "curves.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert {(r["panel"], r["label"]) for r in rows} == {
+        ("planar_reach", "proprio_baseline"),
+        ("planar_reach", "multimodal_bidal"),
+        ("ur5_reach", "proprio_baseline"),
+    }
+    first = rows[0]  # planar_reach proprio_baseline, epoch 1: seeds 0.1 and 0.3 after 100 env steps per seed
+    assert (float(first["x"]), float(first["mean"]), float(first["std"])) == pytest.approx((100, 0.2, 0.1))
+
+
+def test_a_finished_grid_says_so():
+    arms = _arms(["--epochs", "2"])[:1]
+    runs = {arms[0].name: {"epoch": [1.0, 2.0]}}
+    assert curves.gaps(arms, runs) == "No run is missing or unfinished."

@@ -1,0 +1,124 @@
+"""The transfer experiment (experiments/paper/transfer_learning.py) on hand-written run directories:
+it skips finished runs, resumes interrupted ones, trains only the arms asked for and tabulates both
+arms; its options are checked before anything runs."""
+
+import csv
+import os
+import shutil
+
+import pytest
+
+from experiments.paper import grid
+from experiments.paper import transfer_learning as experiment
+
+# per arm: per-epoch per-seed eval success (2 seeds); epochs of 100 env steps per seed, 10 s each
+FAKE = {
+    "source": [(0.1, 0.3), (0.5, 0.7)],
+    "transfer": [(0.2, 0.4), (0.4, 0.6), (0.6, 0.8)],
+    "scratch": [(0.0, 0.2), (0.1, 0.1), (0.3, 0.5)],
+}
+EXPERIMENT = ["--seeds", "2", "--epochs", "3", "--source-epochs", "2", "--last-n", "2", "--quiet"]
+
+
+def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_nicol, fake_run, capsys):
+    out = tmp_path / "out"
+    for name, rows in FAKE.items():
+        fake_run(str(out / name), "nicol_slide" if name == "source" else "nicol_lift_reduced", rows, len(rows),
+                 compile_seconds=50.0 if name == "transfer" else None)  # scratch: recorded before that column
+    assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 0
+    assert no_nicol == []
+    printed = capsys.readouterr().out
+    assert (
+        "source: nicol_slide multimodal_bidal, 2 seed(s), exploration starts 0; 2 epochs × 128,000 = 256,000" in printed
+    )
+    assert (
+        f"transfer: nicol_lift_reduced multimodal_bidal, 2 seed(s), exploration starts 0, parameters from {out}/source"
+        in printed
+    )
+    assert "3 epochs × 128,000 = 384,000 env steps per seed" in printed and "[done]" in printed
+    table = (out / "table.md").read_text()
+    # transfer: means 0.3, 0.5, 0.7 -> 0.3 at epoch 1 (100 steps, 10 s + 50 s compile), 0.5 at epoch 2; AUC 0.5;
+    # last 2: seeds 0.5, 0.7
+    assert "| transfer | 2 | 3 | 300 | 100 (epoch 1) | 60 s | 200 (epoch 2) | 70 s | 0.500 | 0.600 ± 0.100 |" in table
+    assert "compilation included but for scratch, whose metrics.csv predates `wall_time_with_compile`" in table
+    # scratch: means 0.1, 0.1, 0.4 -> 0.3 at epoch 3, 0.5 never; AUC 0.2; last 2: seeds 0.2, 0.3
+    assert (
+        "| scratch | 2 | 3 | 300 | 300 (epoch 3) | 30 s | not reached | not reached | 0.200 | 0.250 ± 0.050 |" in table
+    )
+    assert "Source: nicol_slide multimodal_bidal" in table and "2 epochs, 200 env steps per seed, 20 s" in table
+    assert "| AUC | 0.500 | 0.200 | 0.300 |" in table  # transfer − scratch (tests/experiments/test_stats.py)
+    assert (
+        f"Regenerate from the run folders: `python -m experiments.paper.transfer_learning --arms none --out {out} "
+        "--seeds 2 --last-n 2`" in table
+    )
+    with open(out / "success.png", "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    with open(out / "success.csv", newline="") as f:
+        assert {r["label"] for r in csv.DictReader(f)} == {"transfer", "scratch"}
+
+
+def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_path, no_nicol, fake_run, capsys):
+    out = tmp_path / "out"
+    fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)  # done
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"][:1], 1)  # interrupted at epoch 1 of 3
+    os.makedirs(out / "scratch")
+    (out / "scratch" / "metrics.csv").write_text("epoch\n")  # stopped before its first checkpoint
+    assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 0
+    assert no_nicol == [
+        ("prepare", str(out / "transfer"), True, False),
+        ("train", str(out / "transfer"), True, True),
+        ("prepare", str(out / "scratch"), False, True),
+        ("train", str(out / "scratch"), False, False),
+    ]
+    assert "[resume, checkpoint at epoch 1]" in capsys.readouterr().out
+    assert "| transfer | 2 | 1 | 100 |" in (out / "table.md").read_text()  # from whatever is there
+
+
+def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol, fake_run):
+    out = tmp_path / "out"
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "scratch"]) == 0
+    assert no_nicol == [("prepare", str(out / "scratch"), False, True), ("train", str(out / "scratch"), False, False)]
+    shutil.rmtree(out / "scratch" / "checkpoints", ignore_errors=True)
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], 1)
+    shutil.rmtree(out / "transfer" / "checkpoints")  # results only: checkpoints are not needed
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
+    assert len(no_nicol) == 2 and "| transfer | 2 | 3 | 300 |" in (out / "table.md").read_text()
+
+
+def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
+    args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
+    arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
+    assert [a.name for a in arms] == ["source", "transfer", "scratch"]
+    source, moved, scratch = (a.given for a in arms)
+    assert (source["env"], source["epochs"], source["num_envs"]) == ("nicol_slide", 100, 64)
+    assert "exploration_starts" not in source  # nicol_slide has no held start
+    assert {k: v for k, v in moved.items() if k not in ("init_from", "init_parts", "run_dir")} == {
+        k: v for k, v in scratch.items() if k != "run_dir"
+    }
+    assert (scratch["exploration_starts"], scratch["seeds"], moved["init_from"]) == (0.5, 5, "out/source")
+    args, rest = experiment.build_parser().parse_known_args(["--source", "runs/slide", "--source-checkpoint", "best"])
+    arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
+    assert [a.name for a in arms] == ["transfer", "scratch"] and arms[0].given["init_from"] == "runs/slide:best"
+    assert arms[1].given["exploration_starts"] == 0.0
+
+
+@pytest.mark.parametrize(
+    "extra, expected",
+    [
+        (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
+        (
+            ["--exploration-starts", "0.5"],
+            "error: --exploration-starts: not passed through to the runs (use --held-starts)",
+        ),
+        (["--num-envs", "0"], "error: --num-envs 0: must be a positive integer"),
+        (
+            ["--arms", "source,lift"],
+            "error: --arms source,lift: unknown arm 'lift'; allowed: source, transfer, scratch",
+        ),
+    ],
+)
+def test_bad_experiment_options_are_refused_before_anything_runs(extra, expected, tmp_path, no_nicol, capsys):
+    out = tmp_path / "out"
+    assert experiment.main([*EXPERIMENT, "--out", str(out), *extra]) == 2
+    assert capsys.readouterr().err.strip() == expected
+    assert no_nicol == [] and not out.exists()

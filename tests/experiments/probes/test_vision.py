@@ -1,0 +1,34 @@
+"""The vision probe (experiments/probes/vision.py): its success test by hand, bad input, a tiny run."""
+
+import numpy as np
+import pytest
+
+from experiments.probes import vision as vision_probe
+
+
+def test_located_is_the_share_within_epsilon():
+    goals = np.zeros((4, 2))
+    pred = np.array([[0.01, 0.0], [0.0, 0.019], [0.02, 0.0], [0.3, 0.4]])
+    assert vision_probe.located(pred, goals, 0.02) == 0.5  # strictly within ε, as the sparse reward
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["--envs", "nope"], "error: --envs nope: unknown env 'nope'; allowed: planar_reach"),
+    (["--conv-strides", "2,2,1"], "error: --conv-strides 2,2,1: must be four comma-separated positive integers"),
+    (["--frames", "4"], "error: --frames 4: must be an integer >= 5"),
+    (["--steps", "0"], "error: --steps 0: must be an integer >= 1"),
+])
+def test_bad_input_is_one_line_before_any_work(argv, expected, tmp_path, capsys):
+    out = tmp_path / "table.md"
+    assert vision_probe.main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(expected) and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_a_tiny_probe_writes_its_table(tmp_path, capsys):
+    out = tmp_path / "table.md"
+    argv = ["--envs", "planar_reach", "--conv-strides", "3,2,2,2", "--frames", "20", "--steps", "3", "--batch", "4"]
+    assert vision_probe.main([*argv, "--out", str(out)]) == 0
+    row = out.read_text().splitlines()[-1]
+    assert row.startswith("| planar_reach | 3,2,2,2 | 0.02 | ") and row.endswith("| 16 / 4 |")

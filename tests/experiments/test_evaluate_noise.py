@@ -1,0 +1,74 @@
+"""experiments.evaluate (and bidal_jax.run.policy.load_noise) on a run trained with observation noise
+(paper Eq. 9): κ and σ are restored from the checkpoint, the evaluation under them reproduces the run's
+logged eval success, and `--clean` evaluates without noise, saying so."""
+
+import csv
+import dataclasses
+import functools
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+import envs_mjx
+from bidal_jax import acting, noise
+from bidal_jax.run.policy import load_noise, load_policy
+from experiments import evaluate, run
+from tests.helpers import restored_state
+
+SEEDS, EPOCHS, EVAL_ENVS, KAPPA = 2, 2, 16, 0.5
+TINY = [
+    "--env", "planar_reach", "--agent", "proprio_baseline", "--num-envs", "4", "--cycles-per-epoch", "2",
+    "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", str(EVAL_ENVS),
+    "--seeds", str(SEEDS), "--epochs", str(EPOCHS), "--obs-noise", str(KAPPA), "--noise-segments", "q", "--quiet",
+]
+
+
+@pytest.fixture(scope="module")
+def noisy(tmp_path_factory):
+    """A finished tiny run with observation noise on planar_reach's joint angles, and its last metrics row."""
+    run_dir = str(tmp_path_factory.mktemp("noisy") / "run")
+    assert run.main([*TINY, "--run-dir", run_dir]) == 0
+    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
+        return run_dir, list(csv.DictReader(f))[-1]
+
+
+def test_noise_state_is_restored_as_saved(noisy):
+    run_dir, _ = noisy
+    trained = load_policy(run_dir)
+    restored = load_noise(run_dir, trained)
+    state, _ = restored_state(run_dir)
+    np.testing.assert_array_equal(np.asarray(restored.kappa), np.full(SEEDS, KAPPA, np.float32))
+    np.testing.assert_array_equal(np.asarray(restored.sigma), np.asarray(state.noise.sigma))
+    assert np.asarray(restored.sigma).shape == (SEEDS, 2) and (np.asarray(restored.sigma) > 0).all()
+    config = trained.config
+    clean = dataclasses.replace(trained, config=dataclasses.replace(
+        config, train=dataclasses.replace(config.train, noise_segments="")))
+    assert load_noise(run_dir, clean) is None
+
+
+def test_noisy_evaluation_reproduces_the_logged_success_and_clean_says_so(noisy, tmp_path, capsys):
+    run_dir, row = noisy
+    path = str(tmp_path / "eval.json")
+    assert evaluate.main(["--run-dir", run_dir, "--episodes", str(EVAL_ENVS), "--json", path, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert f"noisy as in training's evaluation, κ {KAPPA:g} on q" in out
+    result = json.load(open(path))
+    assert result["per_seed"] == [float(row[f"eval_success_seed{i}"]) for i in range(SEEDS)]
+    assert evaluate.main(["--run-dir", run_dir, "--episodes", str(EVAL_ENVS), "--clean", "--quiet"]) == 0
+    assert "observations: clean (--clean; the run trained with noise on q)" in capsys.readouterr().out
+
+
+def test_the_restored_noise_changes_only_the_noised_features(noisy):
+    run_dir, _ = noisy
+    trained = load_policy(run_dir)
+    seed_noise = jax.tree.map(lambda x: x[0], load_noise(run_dir, trained))
+    env = envs_mjx.make("planar_reach", render=False)
+    indices = noise.feature_indices(env.observation_spec.proprio_segments, ("q",))
+    observe = functools.partial(noise.observe, seed_noise, indices)
+    _, (seen, true) = acting.rollout(env, trained.policy(0), jax.random.PRNGKey(1), 4, observe=observe,
+                                     record=lambda step: (step.obs["proprio"], step.state.obs["proprio"]))
+    changed = np.asarray(seen != true).any(axis=(0, 1))
+    assert changed[indices].all() and changed.sum() == len(indices)
