@@ -137,6 +137,14 @@ def hand_quat(rest_quat: jax.Array, roll: jax.Array, tilt: jax.Array) -> jax.Arr
     return quat_mul(quat_mul(rest_quat, axis_quat(0, roll)), axis_quat(1, tilt))
 
 
+def interpolate_pose(pos: jax.Array, quat: jax.Array, new_pos: jax.Array, new_quat: jax.Array, fraction):
+    """The pose `fraction` of the way from (pos, quat) to (new_pos, new_quat): linear in position,
+    normalised linear (nlerp, along the shorter arc) in orientation."""
+    new_quat = jnp.where(jnp.dot(quat, new_quat) < 0.0, -new_quat, new_quat)
+    between = quat + fraction * (new_quat - quat)
+    return pos + fraction * (new_pos - pos), between / jnp.linalg.norm(between)
+
+
 def euler_xyz(mat: jax.Array) -> jax.Array:
     """Extrinsic x-y-z Euler angles (roll, pitch, yaw) of mat = Rz(yaw) Ry(pitch) Rx(roll)."""
     roll = jnp.arctan2(mat[2, 1], mat[2, 2])
@@ -237,19 +245,36 @@ class NicolEnv(Env):
         )
         return data, goal
 
-    def _apply_action(self, data, action):
-        hand = data.xpos[self._hand]
-        target = jnp.clip(hand + MAX_MOVE * action[:3], self._workspace_low, self._workspace_high)
-        roll, tilt = roll_tilt(self._rest_quat, data.mocap_quat[self._target_mocap])
+    def commands(self, hand_pos: jax.Array, target_quat: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
+        """(hand target position, hand target quaternion, ctrl) at the end of a control period, from
+        the grasp point `hand_pos`, the current target quaternion and a clipped action."""
+        target = jnp.clip(hand_pos + MAX_MOVE * action[:3], self._workspace_low, self._workspace_high)
+        roll, tilt = roll_tilt(self._rest_quat, target_quat)
         roll = jnp.clip(roll + MAX_TURN * action[3], -ROLL_RANGE, ROLL_RANGE)
         tilt = jnp.clip(tilt + MAX_TURN * action[4], -TILT_RANGE, TILT_RANGE)
-        quat = hand_quat(self._rest_quat, roll, tilt)
         ctrl = self._ctrl_low + 0.5 * (action[5:7] + 1.0) * (self._ctrl_high - self._ctrl_low)
+        return target, hand_quat(self._rest_quat, roll, tilt), ctrl
+
+    def target_path(self, pos: jax.Array, quat: jax.Array, new_pos: jax.Array, new_quat: jax.Array, i: jax.Array):
+        """The hand target (position, quaternion) at physics substep `i` of a control period that moves
+        it from (pos, quat) to (new_pos, new_quat): evenly spaced, reaching the new target at the last
+        substep, so that the hand is led along the way instead of pulled by a jump."""
+        return interpolate_pose(pos, quat, new_pos, new_quat, (i + 1) / self.n_substeps)
+
+    def _apply_action(self, data, action):
+        target, quat, ctrl = self.commands(data.xpos[self._hand], data.mocap_quat[self._target_mocap], action)
         return data.replace(
             mocap_pos=data.mocap_pos.at[self._target_mocap].set(target),
             mocap_quat=data.mocap_quat.at[self._target_mocap].set(quat),
             ctrl=ctrl,
         )
+
+    def _substep_controls(self, before, commanded, data, i):
+        t = self._target_mocap
+        pos, quat = self.target_path(
+            before.mocap_pos[t], before.mocap_quat[t], commanded.mocap_pos[t], commanded.mocap_quat[t], i
+        )
+        return data.replace(mocap_pos=data.mocap_pos.at[t].set(pos), mocap_quat=data.mocap_quat.at[t].set(quat))
 
     def _proprio(self, data):
         ee_pos = data.xpos[self._hand]
