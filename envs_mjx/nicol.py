@@ -42,6 +42,7 @@ from __future__ import annotations
 import abc
 import copy
 
+import chex
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -153,6 +154,49 @@ def euler_xyz(mat: jax.Array) -> jax.Array:
     return jnp.stack([roll, pitch, yaw])
 
 
+def _cube_symmetries() -> np.ndarray:
+    """The 24 proper rotations that map a cube onto itself (its rotation group), as unit quaternions."""
+    h, q = np.sqrt(0.5), 0.5
+    quats = [(1.0, 0.0, 0.0, 0.0)]
+    for axis in np.eye(3):
+        quats += [(0.0, *axis), (h, *(h * axis)), (h, *(-h * axis))]  # 180° and ±90° about each face axis
+    for i, j in ((0, 1), (0, 2), (1, 2)):  # 180° about the six edge diagonals
+        for sign in (1.0, -1.0):
+            axis = np.zeros(3)
+            axis[i], axis[j] = h, sign * h
+            quats.append((0.0, *axis))
+    for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):  # ±120° about the 4 body diagonals
+        quats.append((q, *(q * signs)))
+    return np.array(quats, np.float32)
+
+
+CUBE_SYMMETRIES = _cube_symmetries()
+# the largest angle between a cube's orientation and the nearest of its 24 symmetric poses:
+# 2 arctan of the Rodrigues vector to a vertex of the fundamental zone, (√2-1)(1, 1, √2-1); 62.8°
+MAX_CUBE_ANGLE = float(2 * np.arctan(np.linalg.norm((np.sqrt(2) - 1) * np.array([1.0, 1.0, np.sqrt(2) - 1]))))
+
+
+def rotation_vector(quat: jax.Array) -> jax.Array:
+    """Axis × angle (rad, in [0, π]) of a unit quaternion's rotation."""
+    quat = jnp.where(quat[0] < 0.0, -quat, quat)
+    sin = jnp.linalg.norm(quat[1:])
+    angle = 2.0 * jnp.arctan2(sin, quat[0])
+    # angle / sin → 2 as the rotation vanishes; the guard keeps the gradient finite there
+    return quat[1:] * jnp.where(sin > 1e-7, angle / jnp.maximum(sin, 1e-7), 2.0)
+
+
+def cube_rotation(quat: jax.Array, rest_quat: jax.Array) -> jax.Array:
+    """A cube's orientation as 3 continuous numbers that respect its symmetry: the rotation vector
+    (world frame) that turns its rest pose `rest_quat` onto the nearest of the 24 poses `quat`
+    looks alike in (`quat` ⊗ s for s in `CUBE_SYMMETRIES`). Zero at rest and at every pose that
+    looks like it, at most `MAX_CUBE_ANGLE` long, and a small rotation of the cube changes it by
+    as little (except where two symmetric poses are equally near, where any such map must jump)."""
+    chex.assert_shape([quat, rest_quat], (4,))
+    poses = jax.vmap(lambda s: quat_mul(quat, s))(jnp.asarray(CUBE_SYMMETRIES))
+    nearest = poses[jnp.argmax(jnp.abs(poses @ rest_quat))]
+    return rotation_vector(quat_mul(nearest, quat_conj(rest_quat)))
+
+
 def point_velocity(point: jax.Array, qvel: jax.Array, axes: jax.Array, anchors: jax.Array) -> jax.Array:
     """Linear velocity of a point moved by a chain of hinges (axes, anchors: (n, 3); qvel: (n,))."""
     return jnp.sum(qvel[:, None] * jnp.cross(axes, point - anchors), axis=0)
@@ -224,6 +268,7 @@ class NicolEnv(Env):
         self._home_mocap_quat = jnp.asarray(key.mquat.reshape(-1, 4), jnp.float32)
         self._rest_quat = self._home_mocap_quat[self._target_mocap]
         self._cube_centre = jnp.asarray(key.qpos[self._cube_qpos : self._cube_qpos + 3], jnp.float32)
+        self._cube_rest_quat = jnp.asarray(key.qpos[self._cube_qpos + 3 : self._cube_qpos + 7], jnp.float32)
         self._workspace_low = jnp.asarray(WORKSPACE_LOW, jnp.float32)
         self._workspace_high = jnp.asarray(WORKSPACE_HIGH, jnp.float32)
 
@@ -290,7 +335,7 @@ class NicolEnv(Env):
             "ee_pos": ee_pos,
             "ee_rot": euler_xyz(data.xmat[self._hand]),
             "obj_pos": obj_pos,
-            "obj_rot": euler_xyz(data.xmat[self._cube]),
+            "obj_rot": cube_rotation(data.xquat[self._cube], self._cube_rest_quat),
             "obj_rel_pos": obj_pos - ee_pos,
             "obj_velp": cube_vel[:3],
             # a free joint's angular velocity is in the body frame; rotate it to the world

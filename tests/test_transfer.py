@@ -21,7 +21,7 @@ import pytest
 from test_validation import assert_refused
 
 import envs_mjx
-from bidal_jax import checkpoint, config as config_lib, loop, transfer
+from bidal_jax import checkpoint, config as config_lib, loop, normalizer, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 from experiments import grid, run, transfer as experiment
@@ -153,7 +153,7 @@ def test_the_proprio_normaliser_follows_the_encoder_with_the_kept_rows(transferr
     src = source_state.proprio_norm
     assert float(src.count[0]) > 0 and float(fresh.proprio_norm.count[0]) == 0  # the source's statistics are real
     np.testing.assert_array_equal(initial.proprio_norm.count, src.count[:SEEDS])
-    for field in ("total", "total_sq", "mean", "std"):
+    for field in normalizer.FEATURE_FIELDS:
         np.testing.assert_array_equal(getattr(initial.proprio_norm, field), getattr(src, field)[:SEEDS, :2], err_msg=field)
     # goals reach only the fresh actor and critic: the goal normaliser starts fresh
     for a, b in zip(jax.tree.leaves(initial.goal_norm), jax.tree.leaves(fresh.goal_norm)):
