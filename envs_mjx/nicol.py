@@ -1,4 +1,4 @@
-"""nicol_slide and nicol_lift: NICOL's right arm and hand move a cube (paper Sec. III-D.3, TASKS.md).
+"""nicol_slide and nicol_lift: NICOL's right arm and hand move a cube (paper Sec. III-D.3, docs/tasks.md).
 
 The scene (`assets/nicol.xml`, documented in `assets/README.md`) is NICOL's right
 OpenManipulator-P arm with a simplified RH8D hand at a table, a 0.05 m cube and a dark
@@ -11,19 +11,33 @@ Action (A = 7, paper Table I), each entry in [-1, 1]:
   6    thumb abduction, absolute: -1 along the palm, +1 opposing the fingers.
 
 The arm follows the Cartesian command as in the Fetch tasks: a mocap body, welded to the
-hand's grasp point, is set to `clip(hand + increment)` inside the workspace box, and the
-arm joints follow passively under a stiff weld (tracking error after one control period
-a few mm, under 1 cm; see tests/test_nicol.py). Roll and tilt are angles about the hand's own x
-(along the fingers) and y (across the palm) axes relative to the rest orientation,
-kept within `ROLL_RANGE` and `TILT_RANGE`.
+hand's grasp point, is moved to `clip(hand + increment)` inside the workspace box, and the
+arm joints follow passively under the weld. The target moves there in even steps over the
+physics substeps of the control period (`NicolEnv.target_path`), so the hand is led at
+most 0.05 m per 0.04 s (1.25 m/s) instead of being pulled by a jump (tracking error after
+one control period under 1 cm; see tests/test_nicol.py). Roll and tilt are angles about the
+hand's own x (along the fingers) and y (across the palm) axes relative to the rest
+orientation, kept within `ROLL_RANGE` and `TILT_RANGE`. The contacts and solver settings
+that keep the cube from being thrown are in `assets/nicol.xml`, with the measurements behind
+them in `assets/README.md` (`python -m envs_mjx.physics_check` repeats them).
 
 Proprio (D = 40, paper Table I), in this order: `ee_pos` 3 (the hand's grasp point),
 `ee_rot` 3, `obj_pos` 3, `obj_rot` 3, `obj_rel_pos` 3 (cube minus hand), `obj_velp` 3,
 `obj_velr` 3, `ee_velp` 3, `q` 8 (the six arm joints, finger closure, thumb abduction),
-`qdot` 8. Rotations are extrinsic x-y-z Euler angles (roll, pitch, yaw) of the world
-rotation, as in Gymnasium-Robotics' Fetch observations; velocities are world-frame m/s
-and rad/s. The RH8D wrist flexion joint that helps the arm reach is not part of `q`
-(TASKS.md fixes q to eight entries); its effect is seen through `ee_rot`.
+`qdot` 8. Rotations are continuous (a small physical rotation is a small change of input):
+- `obj_rot` (`cube_rotation`) is the rotation vector from the cube's rest pose to the nearest
+  of the 24 poses that look alike (the cube's rotation group): zero at rest, the same for
+  alike poses, at most `MAX_CUBE_ANGLE` (62.8°) long. It jumps only where two alike poses are
+  equally near, as any 3 numbers that respect the symmetry must; Euler angles of a tumbling
+  cube wrap at ±π and flip near pitch ±π/2.
+- `ee_rot` stays extrinsic x-y-z Euler angles (roll, pitch, yaw) of the hand's world
+  rotation, as in Gymnasium-Robotics' Fetch observations: within `ROLL_RANGE` and
+  `TILT_RANGE` of the rest pose (20° about z) they stay within |roll| ≤ 0.90, |pitch| ≤ 0.60,
+  |yaw| ≤ 0.81 rad, far from the wrap at ±π and the flip at pitch ±π/2, so they are
+  continuous over the hand's whole range.
+Velocities are world-frame m/s and rad/s. The RH8D wrist flexion joint that helps the arm
+reach is not part of `q` (docs/tasks.md fixes q to eight entries); its effect is seen through
+`ee_rot`.
 
 Goal (G = 3): the cube centre; ε = 0.05 m, T = 50 steps. The cube starts upright,
 aligned with the resting hand, uniformly within ±`CUBE_START_RANGE` (xy) of a point in
@@ -81,7 +95,7 @@ CUBE_START_RANGE = 0.1  # ± m around the keyframe's cube position
 SLIDE_GOAL_RANGE = 0.15  # ± m beyond the start region
 LIFT_GOAL_RANGE = 0.1  # ± m around the cube's start
 LIFT_HEIGHT = (0.05, 0.25)  # m above the table top
-GRASP_CLOSE_TIME = 0.6  # s for fingers and thumb to close on the cube, without gravity
+GRASP_CLOSE_TIME = 1.0  # s for fingers and thumb (at most 2 rad/s) to close on the cube, without gravity
 GRASP_SETTLE_TIME = 0.4  # s for the held cube to settle under gravity
 
 ARM_JOINTS = ("r_joint1", "r_joint2", "r_joint3", "r_joint4", "r_joint5", "r_joint6")
