@@ -15,7 +15,8 @@ from __future__ import annotations
 import abc
 import dataclasses
 import importlib.resources
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import chex
 import jax

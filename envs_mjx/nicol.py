@@ -179,7 +179,8 @@ def _cube_symmetries() -> np.ndarray:
             axis = np.zeros(3)
             axis[i], axis[j] = h, sign * h
             quats.append((0.0, *axis))
-    for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):  # ±120° about the 4 body diagonals
+    # ±120° about the 4 body diagonals
+    for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
         quats.append((q, *(q * signs)))
     return np.array(quats, np.float32)
 

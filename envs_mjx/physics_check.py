@@ -45,7 +45,11 @@ DROP_OFFSET = (0.15, -0.15)  # m from the cube's start centre, clear of the rest
 FAR = 0.5  # m
 CLIP = 5.0  # the trainer's default clip_obs
 HAND_GEOMS = ("r_palm", "r_index", "r_middle", "r_ring", "r_little", "r_thumb")
-PAIRS = {"hand_cube": (HAND_GEOMS, ("cube",)), "hand_table": (HAND_GEOMS, ("table",)), "cube_table": (("cube",), ("table",))}
+PAIRS = {
+    "hand_cube": (HAND_GEOMS, ("cube",)),
+    "hand_table": (HAND_GEOMS, ("table",)),
+    "cube_table": (("cube",), ("table",)),
+}
 MAX_CONTACTS = 64  # per substep, for plain MuJoCo's records
 
 
@@ -55,7 +59,8 @@ def scenario_action(scenario: jax.Array, hand: jax.Array, cube: jax.Array, key: 
     key_noise, key_hand, key_random = jax.random.split(key, 3)
     towards = (cube - hand) / jnp.maximum(jnp.linalg.norm(cube - hand), 1e-6)
     noise = PUSH_NOISE * jax.random.normal(key_noise, (5,))
-    push = jnp.concatenate([towards + noise[:3], noise[3:], jax.random.uniform(key_hand, (2,), minval=-1.0, maxval=1.0)])
+    hand_closure = jax.random.uniform(key_hand, (2,), minval=-1.0, maxval=1.0)
+    push = jnp.concatenate([towards + noise[:3], noise[3:], hand_closure])
     random = jax.random.uniform(key_random, (7,), minval=-1.0, maxval=1.0)
     rest = jnp.zeros(7).at[5:].set(-1.0)
     return jnp.clip(jnp.select([scenario == 0, scenario == 1], [push, random], rest), -1.0, 1.0)
@@ -83,7 +88,7 @@ def start_state(env: NicolEnv, scenario: jax.Array, episode: jax.Array, key: jax
 # ----- what one substep shows --------------------------------------------------------------
 def pair_geoms(mj_model: mujoco.MjModel) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """Geom ids of the two sides of each of `PAIRS`."""
-    ids = lambda names: np.array([mj_model.geom(n).id for n in names])  # noqa: E731
+    ids = lambda names: np.array([mj_model.geom(n).id for n in names])
     return {name: (ids(a), ids(b)) for name, (a, b) in PAIRS.items()}
 
 
@@ -174,7 +179,8 @@ def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) ->
                 geom[i, step, sub, :n] = data.contact.geom[:n]
                 dist[i, step, sub, :n] = data.contact.dist[:n]
     pairs = pair_geoms(model)
-    depth = jax.jit(jax.vmap(lambda g, d: contact_depths(g, d, pairs)))(geom.reshape(-1, MAX_CONTACTS, 2), dist.reshape(-1, MAX_CONTACTS))
+    depths = jax.jit(jax.vmap(lambda g, d: contact_depths(g, d, pairs)))
+    depth = depths(geom.reshape(-1, MAX_CONTACTS, 2), dist.reshape(-1, MAX_CONTACTS))
     return {"motion": motion, "depth": np.asarray(depth).reshape(*motion.shape[:3], -1)}
 
 

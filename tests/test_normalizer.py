@@ -61,5 +61,5 @@ def test_checkpoints_of_the_former_layout_are_converted():
     state = normalizer.from_saved(legacy)
     np.testing.assert_allclose(np.asarray(state.m2), data.var(1) * 100, rtol=1e-4)
     fresh = normalizer.update(normalizer.init(3), jnp.asarray(data[0], jnp.float32))
-    np.testing.assert_allclose(np.asarray(normalizer.from_saved({k: getattr(fresh, k) for k in ("count", "mean", "m2", "std")}).m2),
-                               np.asarray(fresh.m2))
+    saved = {k: getattr(fresh, k) for k in ("count", "mean", "m2", "std")}
+    np.testing.assert_allclose(np.asarray(normalizer.from_saved(saved).m2), np.asarray(fresh.m2))
