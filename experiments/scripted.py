@@ -1,13 +1,12 @@
 """A scripted (non-learning) controller for nicol_slide and nicol_lift.
 
 It shows that the NICOL model's physics allows grasping and moving the cube within the
-50-step episode (TASKS.md). One controller serves both tasks: `grasp_policy` hovers
+50-step episode (docs/tasks.md). One controller serves both tasks: `grasp_policy` hovers
 above the cube, descends, closes fingers and thumb on it and carries it to the goal; on
 nicol_slide the goal lies on the table, so the held cube slides along the table top. It
 is a pure, stateless JAX function of one observation (its named proprio segments and the
 desired goal), so it vmaps over environments; the phase of the manoeuvre is read from
-the observation itself. (A thumb-pushing controller reached only 40–47 % on
-nicol_slide: a fast push launches the cube; see assets/README.md.)
+the observation itself.
 
     python -m experiments.scripted      # success rates over 100 random episodes each
 """
