@@ -15,6 +15,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import importlib.resources
+from collections.abc import Callable
 from typing import Any
 
 import chex
@@ -202,6 +203,12 @@ class Env(abc.ABC):
     def _apply_action(self, data: mjx.Data, action: jax.Array) -> mjx.Data:
         """Write a clipped action in [-1, 1] into the controls (ctrl / mocap)."""
 
+    def _substep_controls(self, before: mjx.Data, commanded: mjx.Data, data: mjx.Data, i: jax.Array) -> mjx.Data:
+        """The controls of physics substep `i` (0 … n_substeps - 1): `data` with what changes within the
+        control period written in. `before` is the data the step started from, `commanded` the data after
+        `_apply_action`. By default the commanded controls hold over the whole period."""
+        return data
+
     @abc.abstractmethod
     def _proprio(self, data: mjx.Data) -> dict[str, jax.Array]:
         """The proprio segments by name, in `observation_spec` order."""
@@ -245,11 +252,21 @@ class Env(abc.ABC):
     def step(self, state: State, action: jax.Array) -> State:
         """Advance one control period (0.04 s). Actions are clipped to [-1, 1]; NaN is
         rejected with an error when the action is concrete, and replaced by 0 under jit."""
+        return self.probed_step(state, action, lambda data: ())[0]
+
+    def probed_step(self, state: State, action: jax.Array, probe: Callable[[mjx.Data], Any]) -> tuple[State, Any]:
+        """`step`, also returning `probe(data)` after each physics substep, stacked on a leading
+        axis of `n_substeps` (diagnostics such as `envs_mjx.physics_check` see every substep)."""
         check_action(action, self.action_size)
         chex.assert_shape(action, (self.action_size,))
         action = jnp.clip(jnp.nan_to_num(action, nan=0.0), -1.0, 1.0)
-        data = self._apply_action(state.data, action)
-        data = jax.lax.fori_loop(0, self.n_substeps, lambda _, d: mjx.step(self.mjx_model, d), data)
+        commanded = self._apply_action(state.data, action)
+
+        def substep(data, i):
+            data = mjx.step(self.mjx_model, self._substep_controls(state.data, commanded, data, i))
+            return data, probe(data)
+
+        data, trace = jax.lax.scan(substep, commanded, jnp.arange(self.n_substeps))
         # mjx.step leaves positions one substep behind qpos; refresh them for obs and camera
         data = mjx.kinematics(self.mjx_model, data)
         goal = state.info["goal"]
@@ -263,7 +280,7 @@ class Env(abc.ABC):
             done=step >= self.episode_length,
             metrics={"success": (reward == 0.0).astype(jnp.float32), "distance": self._distance(obs)},
             info={**state.info, "step": step},
-        )
+        ), trace
 
     # ----- shared helpers -------------------------------------------------------------
     def _observe(self, data: mjx.Data, goal: jax.Array) -> dict[str, jax.Array]:

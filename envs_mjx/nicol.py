@@ -11,19 +11,33 @@ Action (A = 7, paper Table I), each entry in [-1, 1]:
   6    thumb abduction, absolute: -1 along the palm, +1 opposing the fingers.
 
 The arm follows the Cartesian command as in the Fetch tasks: a mocap body, welded to the
-hand's grasp point, is set to `clip(hand + increment)` inside the workspace box, and the
-arm joints follow passively under a stiff weld (tracking error after one control period
-a few mm, under 1 cm; see tests/envs_mjx/test_nicol.py). Roll and tilt are angles about the hand's own x
-(along the fingers) and y (across the palm) axes relative to the rest orientation,
-kept within `ROLL_RANGE` and `TILT_RANGE`.
+hand's grasp point, is moved to `clip(hand + increment)` inside the workspace box, and the
+arm joints follow passively under the weld. The target moves there in even steps over the
+physics substeps of the control period (`NicolEnv.target_path`), so the hand is led at
+most 0.05 m per 0.04 s (1.25 m/s) instead of being pulled by a jump (tracking error after
+one control period under 1 cm; see tests/envs_mjx/test_nicol.py). Roll and tilt are angles about the
+hand's own x (along the fingers) and y (across the palm) axes relative to the rest
+orientation, kept within `ROLL_RANGE` and `TILT_RANGE`. The contacts and solver settings
+that keep the cube from being thrown are in `assets/nicol.xml`, with the measurements behind
+them in `assets/README.md` (`python -m envs_mjx.physics_check` repeats them).
 
 Proprio (D = 40, paper Table I), in this order: `ee_pos` 3 (the hand's grasp point),
 `ee_rot` 3, `obj_pos` 3, `obj_rot` 3, `obj_rel_pos` 3 (cube minus hand), `obj_velp` 3,
 `obj_velr` 3, `ee_velp` 3, `q` 8 (the six arm joints, finger closure, thumb abduction),
-`qdot` 8. Rotations are extrinsic x-y-z Euler angles (roll, pitch, yaw) of the world
-rotation, as in Gymnasium-Robotics' Fetch observations; velocities are world-frame m/s
-and rad/s. The RH8D wrist flexion joint that helps the arm reach is not part of `q`
-(docs/tasks.md fixes q to eight entries); its effect is seen through `ee_rot`.
+`qdot` 8. Rotations are continuous (a small physical rotation is a small change of input):
+- `obj_rot` (`cube_rotation`) is the rotation vector from the cube's rest pose to the nearest
+  of the 24 poses that look alike (the cube's rotation group): zero at rest, the same for
+  alike poses, at most `MAX_CUBE_ANGLE` (62.8°) long. It jumps only where two alike poses are
+  equally near, as any 3 numbers that respect the symmetry must; Euler angles of a tumbling
+  cube wrap at ±π and flip near pitch ±π/2.
+- `ee_rot` stays extrinsic x-y-z Euler angles (roll, pitch, yaw) of the hand's world
+  rotation, as in Gymnasium-Robotics' Fetch observations: within `ROLL_RANGE` and
+  `TILT_RANGE` of the rest pose (20° about z) they stay within |roll| ≤ 0.90, |pitch| ≤ 0.60,
+  |yaw| ≤ 0.81 rad, far from the wrap at ±π and the flip at pitch ±π/2, so they are
+  continuous over the hand's whole range.
+Velocities are world-frame m/s and rad/s. The RH8D wrist flexion joint that helps the arm
+reach is not part of `q` (docs/tasks.md fixes q to eight entries); its effect is seen through
+`ee_rot`.
 
 Goal (G = 3): the cube centre; ε = 0.05 m, T = 50 steps. The cube starts upright,
 aligned with the resting hand, uniformly within ±`CUBE_START_RANGE` (xy) of a point in
@@ -42,6 +56,7 @@ from __future__ import annotations
 import abc
 import copy
 
+import chex
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -79,7 +94,7 @@ CUBE_START_RANGE = 0.1  # ± m around the keyframe's cube position
 SLIDE_GOAL_RANGE = 0.15  # ± m beyond the start region
 LIFT_GOAL_RANGE = 0.1  # ± m around the cube's start
 LIFT_HEIGHT = (0.05, 0.25)  # m above the table top
-GRASP_CLOSE_TIME = 0.6  # s for fingers and thumb to close on the cube, without gravity
+GRASP_CLOSE_TIME = 1.0  # s for fingers and thumb (at most 2 rad/s) to close on the cube, without gravity
 GRASP_SETTLE_TIME = 0.4  # s for the held cube to settle under gravity
 
 ARM_JOINTS = ("r_joint1", "r_joint2", "r_joint3", "r_joint4", "r_joint5", "r_joint6")
@@ -136,12 +151,64 @@ def hand_quat(rest_quat: jax.Array, roll: jax.Array, tilt: jax.Array) -> jax.Arr
     return quat_mul(quat_mul(rest_quat, axis_quat(0, roll)), axis_quat(1, tilt))
 
 
+def interpolate_pose(pos: jax.Array, quat: jax.Array, new_pos: jax.Array, new_quat: jax.Array, fraction):
+    """The pose `fraction` of the way from (pos, quat) to (new_pos, new_quat): linear in position,
+    normalised linear (nlerp, along the shorter arc) in orientation."""
+    new_quat = jnp.where(jnp.dot(quat, new_quat) < 0.0, -new_quat, new_quat)
+    between = quat + fraction * (new_quat - quat)
+    return pos + fraction * (new_pos - pos), between / jnp.linalg.norm(between)
+
+
 def euler_xyz(mat: jax.Array) -> jax.Array:
     """Extrinsic x-y-z Euler angles (roll, pitch, yaw) of mat = Rz(yaw) Ry(pitch) Rx(roll)."""
     roll = jnp.arctan2(mat[2, 1], mat[2, 2])
     pitch = jnp.arcsin(jnp.clip(-mat[2, 0], -1.0, 1.0))
     yaw = jnp.arctan2(mat[1, 0], mat[0, 0])
     return jnp.stack([roll, pitch, yaw])
+
+
+def _cube_symmetries() -> np.ndarray:
+    """The 24 proper rotations that map a cube onto itself (its rotation group), as unit quaternions."""
+    h, q = np.sqrt(0.5), 0.5
+    quats = [(1.0, 0.0, 0.0, 0.0)]
+    for axis in np.eye(3):
+        quats += [(0.0, *axis), (h, *(h * axis)), (h, *(-h * axis))]  # 180° and ±90° about each face axis
+    for i, j in ((0, 1), (0, 2), (1, 2)):  # 180° about the six edge diagonals
+        for sign in (1.0, -1.0):
+            axis = np.zeros(3)
+            axis[i], axis[j] = h, sign * h
+            quats.append((0.0, *axis))
+    # ±120° about the 4 body diagonals
+    for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
+        quats.append((q, *(q * signs)))
+    return np.array(quats, np.float32)
+
+
+CUBE_SYMMETRIES = _cube_symmetries()
+# the largest angle between a cube's orientation and the nearest of its 24 symmetric poses:
+# 2 arctan of the Rodrigues vector to a vertex of the fundamental zone, (√2-1)(1, 1, √2-1); 62.8°
+MAX_CUBE_ANGLE = float(2 * np.arctan(np.linalg.norm((np.sqrt(2) - 1) * np.array([1.0, 1.0, np.sqrt(2) - 1]))))
+
+
+def rotation_vector(quat: jax.Array) -> jax.Array:
+    """Axis × angle (rad, in [0, π]) of a unit quaternion's rotation."""
+    quat = jnp.where(quat[0] < 0.0, -quat, quat)
+    sin = jnp.linalg.norm(quat[1:])
+    angle = 2.0 * jnp.arctan2(sin, quat[0])
+    # angle / sin → 2 as the rotation vanishes; the guard keeps the gradient finite there
+    return quat[1:] * jnp.where(sin > 1e-7, angle / jnp.maximum(sin, 1e-7), 2.0)
+
+
+def cube_rotation(quat: jax.Array, rest_quat: jax.Array) -> jax.Array:
+    """A cube's orientation as 3 continuous numbers that respect its symmetry: the rotation vector
+    (world frame) that turns its rest pose `rest_quat` onto the nearest of the 24 poses `quat`
+    looks alike in (`quat` ⊗ s for s in `CUBE_SYMMETRIES`). Zero at rest and at every pose that
+    looks like it, at most `MAX_CUBE_ANGLE` long, and a small rotation of the cube changes it by
+    as little (except where two symmetric poses are equally near, where any such map must jump)."""
+    chex.assert_shape([quat, rest_quat], (4,))
+    poses = jax.vmap(lambda s: quat_mul(quat, s))(jnp.asarray(CUBE_SYMMETRIES))
+    nearest = poses[jnp.argmax(jnp.abs(poses @ rest_quat))]
+    return rotation_vector(quat_mul(nearest, quat_conj(rest_quat)))
 
 
 def point_velocity(point: jax.Array, qvel: jax.Array, axes: jax.Array, anchors: jax.Array) -> jax.Array:
@@ -215,6 +282,7 @@ class NicolEnv(Env):
         self._home_mocap_quat = jnp.asarray(key.mquat.reshape(-1, 4), jnp.float32)
         self._rest_quat = self._home_mocap_quat[self._target_mocap]
         self._cube_centre = jnp.asarray(key.qpos[self._cube_qpos : self._cube_qpos + 3], jnp.float32)
+        self._cube_rest_quat = jnp.asarray(key.qpos[self._cube_qpos + 3 : self._cube_qpos + 7], jnp.float32)
         self._workspace_low = jnp.asarray(WORKSPACE_LOW, jnp.float32)
         self._workspace_high = jnp.asarray(WORKSPACE_HIGH, jnp.float32)
 
@@ -236,19 +304,36 @@ class NicolEnv(Env):
         )
         return data, goal
 
-    def _apply_action(self, data, action):
-        hand = data.xpos[self._hand]
-        target = jnp.clip(hand + MAX_MOVE * action[:3], self._workspace_low, self._workspace_high)
-        roll, tilt = roll_tilt(self._rest_quat, data.mocap_quat[self._target_mocap])
+    def commands(self, hand_pos: jax.Array, target_quat: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
+        """(hand target position, hand target quaternion, ctrl) at the end of a control period, from
+        the grasp point `hand_pos`, the current target quaternion and a clipped action."""
+        target = jnp.clip(hand_pos + MAX_MOVE * action[:3], self._workspace_low, self._workspace_high)
+        roll, tilt = roll_tilt(self._rest_quat, target_quat)
         roll = jnp.clip(roll + MAX_TURN * action[3], -ROLL_RANGE, ROLL_RANGE)
         tilt = jnp.clip(tilt + MAX_TURN * action[4], -TILT_RANGE, TILT_RANGE)
-        quat = hand_quat(self._rest_quat, roll, tilt)
         ctrl = self._ctrl_low + 0.5 * (action[5:7] + 1.0) * (self._ctrl_high - self._ctrl_low)
+        return target, hand_quat(self._rest_quat, roll, tilt), ctrl
+
+    def target_path(self, pos: jax.Array, quat: jax.Array, new_pos: jax.Array, new_quat: jax.Array, i: jax.Array):
+        """The hand target (position, quaternion) at physics substep `i` of a control period that moves
+        it from (pos, quat) to (new_pos, new_quat): evenly spaced, reaching the new target at the last
+        substep, so that the hand is led along the way instead of pulled by a jump."""
+        return interpolate_pose(pos, quat, new_pos, new_quat, (i + 1) / self.n_substeps)
+
+    def _apply_action(self, data, action):
+        target, quat, ctrl = self.commands(data.xpos[self._hand], data.mocap_quat[self._target_mocap], action)
         return data.replace(
             mocap_pos=data.mocap_pos.at[self._target_mocap].set(target),
             mocap_quat=data.mocap_quat.at[self._target_mocap].set(quat),
             ctrl=ctrl,
         )
+
+    def _substep_controls(self, before, commanded, data, i):
+        t = self._target_mocap
+        pos, quat = self.target_path(
+            before.mocap_pos[t], before.mocap_quat[t], commanded.mocap_pos[t], commanded.mocap_quat[t], i
+        )
+        return data.replace(mocap_pos=data.mocap_pos.at[t].set(pos), mocap_quat=data.mocap_quat.at[t].set(quat))
 
     def _proprio(self, data):
         ee_pos = data.xpos[self._hand]
@@ -264,7 +349,7 @@ class NicolEnv(Env):
             "ee_pos": ee_pos,
             "ee_rot": euler_xyz(data.xmat[self._hand]),
             "obj_pos": obj_pos,
-            "obj_rot": euler_xyz(data.xmat[self._cube]),
+            "obj_rot": cube_rotation(data.xquat[self._cube], self._cube_rest_quat),
             "obj_rel_pos": obj_pos - ee_pos,
             "obj_velp": cube_vel[:3],
             # a free joint's angular velocity is in the body frame; rotate it to the world

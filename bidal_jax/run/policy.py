@@ -78,8 +78,8 @@ def load_policy(run_dir: str, checkpoint_step: int | str | None = None) -> Train
     restored = checkpoint.restore_partial(directory, step, wanted)
     params = ActingParams(
         params=restored["params"],
-        proprio_norm=normalizer.NormalizerState(**restored["proprio_norm"]),
-        goal_norm=normalizer.NormalizerState(**restored["goal_norm"]),
+        proprio_norm=normalizer.from_saved(restored["proprio_norm"]),
+        goal_norm=normalizer.from_saved(restored["goal_norm"]),
     )
     return TrainedPolicy(config, networks, params, jnp.asarray(restored["eval_key"]), step)
 

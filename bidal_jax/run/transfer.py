@@ -15,7 +15,7 @@ checkpoint whose buffer files were deleted still serves):
   targets equal its online networks); all other networks keep their fresh
   initialisation and every optimiser starts fresh (Adam moments zero, step 0);
 - with an encoder that reads proprio, the proprio normaliser it was trained with
-  (count, total, total_sq, mean, std), whose running statistics then continue from the
+  (count, mean, M2, std), whose running statistics then continue from the
   source's counts. The goal normaliser is not carried: goals reach only the actor and
   critic (UVFA's η), which start fresh, and the goal distributions differ (sliding's
   goals lie on the table, lifting's 5-25 cm above it: sliding's height spread, at the
@@ -56,7 +56,9 @@ from bidal_jax.train import make_train
 Segments = Sequence[tuple[str, int]]
 PROPRIO_KERNEL = f"params/encoder/params/{PROPRIO_LAYER}/kernel"
 # the leaves whose first per-seed axis is the proprio feature axis
-ROW_MAPPED = frozenset({PROPRIO_KERNEL, *(f"proprio_norm/{k}" for k in ("total", "total_sq", "mean", "std"))})
+ROW_MAPPED = frozenset(
+    {PROPRIO_KERNEL, *(f"proprio_norm/{k}" for k in normalizer.FEATURE_FIELDS + normalizer.LEGACY_FEATURE_FIELDS)}
+)
 
 
 def parse_init_from(text: str) -> tuple[str, str | None]:
@@ -182,7 +184,7 @@ def apply(p: Plan, state: Any, restored: dict) -> Any:
         return x[:, p.rows] if leaf_name(path) in ROW_MAPPED else x
 
     new = jax.tree_util.tree_map_with_path(select, restored)
-    norms = {"proprio_norm": normalizer.NormalizerState(**new["proprio_norm"])} if "proprio_norm" in new else {}
+    norms = {"proprio_norm": normalizer.from_saved(new["proprio_norm"])} if "proprio_norm" in new else {}
     return state.replace(
         params={**state.params, **new["params"]},
         # copies: the epoch donates its input, and one buffer cannot be donated twice

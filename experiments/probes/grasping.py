@@ -6,8 +6,7 @@ above the cube, descends, closes fingers and thumb on it and carries it to the g
 nicol_slide the goal lies on the table, so the held cube slides along the table top. It
 is a pure, stateless JAX function of one observation (its named proprio segments and the
 desired goal), so it vmaps over environments; the phase of the manoeuvre is read from
-the observation itself. (A thumb-pushing controller reached only 40–47 % on
-nicol_slide: a fast push launches the cube; see assets/README.md.)
+the observation itself.
 
 Its command line is `python -m experiments.probes.scripted` (success rates over 100 random episodes each).
 """
@@ -22,8 +21,10 @@ from envs_mjx.base import Env, ObservationSpec, State
 from envs_mjx.nicol import MAX_MOVE
 
 FINGERS_ENGAGED = 0.3  # rad of finger closure: a grasp is under way
-FINGERS_CLOSED = 1.5  # rad of finger closure that means the cube is held
+FINGERS_CLOSED = 1.3  # rad of finger closure that means the cube is held (they meet its top edges at about 1.35)
 HOVER = 0.06  # m above the cube before descending
+# m of the grasp point above the cube's centre: the closed fingers' tips then clear the table top
+GRASP_HEIGHT = 0.02
 ALIGNED = 0.005  # m
 HELD = 0.04  # m between grasp point and cube while the fingers hold it
 CARRY_STEP = 0.01  # m per step while carrying the cube, gentle enough for the grip
@@ -53,7 +54,7 @@ def grasp_policy(obs: dict[str, jax.Array], spec: ObservationSpec) -> jax.Array:
     (nicol_slide: the held cube slides along the table top) or in the air (nicol_lift).
 
     Hover above the cube with the thumb along the palm, oppose the thumb once aligned,
-    descend until the grasp point is at the cube's centre, close the fingers and, once
+    descend until the grasp point is `GRASP_HEIGHT` above the cube's centre, close the fingers and, once
     they hold the cube, move the hand so that the cube reaches the goal.
     """
     ee = _segment(obs, spec, "ee_pos")
@@ -62,12 +63,12 @@ def grasp_policy(obs: dict[str, jax.Array], spec: ObservationSpec) -> jax.Array:
     rel = obj - ee
     near = jnp.linalg.norm(rel) < HELD
     aligned = jnp.linalg.norm(rel[:2]) < ALIGNED
-    lowered = aligned & (jnp.abs(rel[2]) < ALIGNED)
+    lowered = aligned & (jnp.abs(rel[2] + GRASP_HEIGHT) < ALIGNED)
     # once the fingers are closing on a nearby cube, keep closing without re-aligning
     grasping = lowered | (near & (closure > FINGERS_ENGAGED))
     held = near & (closure > FINGERS_CLOSED)
     hover = obj + jnp.array([0.0, 0.0, HOVER])
-    target = jnp.where(aligned, obj, hover)
+    target = jnp.where(aligned, obj + jnp.array([0.0, 0.0, GRASP_HEIGHT]), hover)
     target = jnp.where(grasping, ee, target)
     target = jnp.where(held, ee + obs["desired_goal"] - obj, target)
     move = _move(ee, target, jnp.where(held, CARRY_STEP, MAX_MOVE))

@@ -100,9 +100,12 @@ def test_slide_goals_lie_on_the_table_around_the_start_region(slide, slide_reset
     np.testing.assert_allclose(np.asarray(states.data.mocap_pos[:, slide._goal_mocap]), goal, atol=1e-6)
 
 
-def test_hand_tracks_random_cartesian_commands_within_a_centimetre(lift):
-    """After every control period the hand is within 1 cm of its commanded position, and the
-    arm joints stay inside their limits."""
+def test_hand_tracks_random_cartesian_commands_within_a_few_centimetres(lift):
+    """After every control period the hand is within 4 cm of its commanded position, and the
+    arm joints stay inside their limits. The target moves over the whole period (issue 24:
+    the hand is led at ≤ 1.25 m/s instead of pulled by a jump), so the hand trails it by the
+    weld's lag, ≈ 2·0.7/75 s × speed ≈ 2.3 cm at full speed (mean 17 mm, max 35 mm measured);
+    before, the target jumped at the start of the period and the hand settled within 5 mm."""
 
     def record(step):
         state = step.next_state
@@ -114,7 +117,7 @@ def test_hand_tracks_random_cartesian_commands_within_a_centimetre(lift):
     error, q = run(jax.random.PRNGKey(2))
     error, q = np.asarray(error), np.asarray(q)
     print(f"hand tracking error after one period: mean {1000 * error.mean():.1f} mm, max {1000 * error.max():.1f} mm")
-    assert error.max() < 0.01
+    assert error.max() < 0.04
     low, high = lift.mj_model.jnt_range[lift._chain_joints[:6]].T
     assert (q >= low - 1e-3).all() and (q <= high + 1e-3).all()
 
@@ -147,7 +150,8 @@ def test_exploration_reset_holds_the_cube_and_draws_the_reset_goal(lift, lift_re
     assert lift.has_exploration_start and not NicolSlide.has_exploration_start
 
 
-@pytest.mark.parametrize("task,threshold", [("slide", 0.9), ("lift", 0.8)])
+# slide: 0.82-0.83 measured since issue 24's slower fingers (0.97 before), see assets/README.md
+@pytest.mark.parametrize("task,threshold", [("slide", 0.75), ("lift", 0.8)])
 def test_scripted_grasp_controller_solves_the_task(task, threshold, slide, lift, slide_resets, lift_resets):
     env, resets = {"slide": (slide, slide_resets), "lift": (lift, lift_resets)}[task]
     # the two tasks share their step, so the second compile is a persistent-cache hit

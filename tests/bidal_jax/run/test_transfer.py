@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from bidal_jax import normalizer
 from bidal_jax.config import resolve
 from bidal_jax.run import checkpoint, preflight, rundir, transfer
 from bidal_jax.train import make_train
@@ -151,7 +152,7 @@ def test_the_proprio_normaliser_follows_the_encoder_with_the_kept_rows(transferr
     src = source_state.proprio_norm
     assert float(src.count[0]) > 0 and float(fresh.proprio_norm.count[0]) == 0  # the source's statistics are real
     np.testing.assert_array_equal(initial.proprio_norm.count, src.count[:SEEDS])
-    for field in ("total", "total_sq", "mean", "std"):
+    for field in normalizer.FEATURE_FIELDS:
         expected = getattr(src, field)[:SEEDS, :2]
         np.testing.assert_array_equal(getattr(initial.proprio_norm, field), expected, err_msg=field)
     # goals reach only the fresh actor and critic: the goal normaliser starts fresh
