@@ -164,14 +164,9 @@ def epochs(name: str, agent: str, seeds_list: list[int], repeats: int) -> list[d
                 holder["state"], metrics = epoch(holder["state"])
                 jax.block_until_ready(metrics)
 
-            one_epoch()
-            first = time.perf_counter() - start
-            times = []
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                one_epoch()
-                times.append(time.perf_counter() - t0)
-            sec = statistics.median(times)
+            build = time.perf_counter() - start
+            t = timed(one_epoch, repeats)
+            first, sec = build + t["first_call_seconds"], t["warm_seconds"]
             steps = seeds * config.cycles_per_epoch * config.num_envs * env.episode_length
             rows.append({"backend": backend, "agent": agent, "seeds": seeds, "build_compile_first_epoch_seconds": first,
                          "epoch_seconds": sec, "env_steps_per_second": steps / sec})
