@@ -256,7 +256,7 @@ class Env(abc.ABC):
 
     def probed_step(self, state: State, action: jax.Array, probe: Callable[[mjx.Data], Any]) -> tuple[State, Any]:
         """`step`, also returning `probe(data)` after each physics substep, stacked on a leading
-        axis of `n_substeps` (diagnostics such as `envs_mjx.physics_check` see every substep)."""
+        axis of `n_substeps` (diagnostics such as `experiments.probes.physics` see every substep)."""
         check_action(action, self.action_size)
         chex.assert_shape(action, (self.action_size,))
         action = jnp.clip(jnp.nan_to_num(action, nan=0.0), -1.0, 1.0)

@@ -19,7 +19,7 @@ one control period under 1 cm; see tests/envs_mjx/test_nicol.py). Roll and tilt 
 hand's own x (along the fingers) and y (across the palm) axes relative to the rest
 orientation, kept within `ROLL_RANGE` and `TILT_RANGE`. The contacts and solver settings
 that keep the cube from being thrown are in `assets/nicol.xml`, with the measurements behind
-them in `assets/README.md` (`python -m envs_mjx.physics_check` repeats them).
+them in `assets/README.md` (`python -m experiments.probes.physics` repeats them).
 
 Proprio (D = 40, paper Table I), in this order: `ee_pos` 3 (the hand's grasp point),
 `ee_rot` 3, `obj_pos` 3, `obj_rot` 3, `obj_rel_pos` 3 (cube minus hand), `obj_velp` 3,

@@ -1,2 +1,3 @@
 """Diagnostic probes: can the vision branch locate the goal (`vision`), can the NICOL physics be
-solved by a scripted controller (`scripted`, the controller of `grasping`)."""
+solved by a scripted controller (`scripted`, the controller of `grasping`), are the NICOL contacts
+plausible (`physics`: cube speed, height, restitution, penetration, normaliser statistics)."""

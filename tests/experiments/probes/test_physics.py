@@ -1,6 +1,6 @@
 """NICOL contact physics and object orientation (docs/tasks.md "nicol_slide and nicol_lift", assets/README.md).
 
-The physics check (envs_mjx/physics_check.py) pushes, shakes and drops the cube on MJX and on plain
+The physics check (experiments/probes/physics.py) pushes, shakes and drops the cube on MJX and on plain
 MuJoCo, small batches; the bounds are the task contract's: the hand sinks only millimetres into cube or
 table, bounces lose energy, the cube moves at most about 3 m/s and never rises 0.4 m above the table.
 The observed figures are in assets/README.md; the bounds here leave room for other seeds.
@@ -11,8 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from envs_mjx import nicol, physics_check
+from envs_mjx import nicol
 from envs_mjx.nicol import CUBE_SYMMETRIES, MAX_CUBE_ANGLE, NicolLift
+from experiments.probes import physics as physics_check
 
 MJX_ENVS, NATIVE_ENVS = 8, 4
 MAX_SPEED = 4.0  # m/s; about 3 m/s observed

@@ -18,7 +18,7 @@ end with the cube more than `FAR` from its start, and what the observation norma
 see: the largest feature std of each proprio segment, the share of entries at the clip, and
 the std of the cube's height (the goal normaliser's height feature).
 
-    python -m envs_mjx.physics_check --env nicol_lift --envs 64 [--native 8] [--json out.json]
+    python -m experiments.probes.physics --env nicol_lift --envs 64 [--native 8] [--json out.json]
 """
 
 from __future__ import annotations
