@@ -89,6 +89,14 @@ class ObservationSpec:
         }
 
 
+def substeps(timestep: float) -> int:
+    """Physics substeps per control period; ValueError unless `timestep` divides `CONTROL_PERIOD`."""
+    n_substeps = CONTROL_PERIOD / timestep
+    if abs(n_substeps - round(n_substeps)) > 1e-6:
+        raise ValueError(f"timestep {timestep} does not divide the control period {CONTROL_PERIOD}")
+    return int(round(n_substeps))
+
+
 def load_model(filename: str) -> mujoco.MjModel:
     """Load an MJCF model from `assets/` (the installed package `envs_mjx.assets`)."""
     with importlib.resources.as_file(ASSETS_DIR / filename) as path:
@@ -140,15 +148,12 @@ class Env(abc.ABC):
         camera_name: str,
         render: bool = True,
     ):
-        n_substeps = CONTROL_PERIOD / mj_model.opt.timestep
-        if abs(n_substeps - round(n_substeps)) > 1e-6:
-            raise ValueError(f"timestep {mj_model.opt.timestep} does not divide the control period {CONTROL_PERIOD}")
+        self.n_substeps = substeps(mj_model.opt.timestep)
         self.mj_model = mj_model
         # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
         self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
         self.backend = "jax"
         self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
-        self.n_substeps = int(round(n_substeps))
         self.episode_length = episode_length
         self.epsilon = epsilon
         self.action_size = action_size
@@ -185,6 +190,24 @@ class Env(abc.ABC):
         else:
             raise ValueError(f"unknown physics backend {backend!r}; valid: jax, warp")
         self.backend = backend
+
+    def set_options(self, **options: float) -> None:
+        """Override fields of the model's physics options (`mujoco.MjOption`: timestep, iterations,
+        ls_iterations, tolerance, impratio, ...) and rebuild the physics, e.g. `set_options(iterations=5)`.
+
+        For measuring what a setting costs and does (`experiments.bench.engine --options`, `experiments.bench.sweep`
+        variants `opt.NAME=VALUE`); a task's own settings are its model file's. Call it before `use_backend`."""
+        if self.backend != "jax":
+            raise ValueError(f"set_options before use_backend: this env already steps on {self.backend!r}")
+        for name, value in options.items():
+            if name.startswith("_") or not hasattr(self.mj_model.opt, name):
+                raise ValueError(f"{name!r} is not a physics option; valid: fields of mujoco.MjOption such as "
+                                 "timestep, iterations, ls_iterations, tolerance")
+        n_substeps = substeps(options.get("timestep", self.mj_model.opt.timestep))
+        for name, value in options.items():
+            setattr(self.mj_model.opt, name, type(getattr(self.mj_model.opt, name))(value))
+        self.n_substeps = n_substeps
+        self.use_backend("jax")
 
     def blank_data(self) -> mjx.Data:
         """A fresh `mjx.Data` of this env's backend, to be filled by `_reset_data`."""

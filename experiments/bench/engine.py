@@ -69,19 +69,29 @@ def open_loop_program(env, n: int):
     return run
 
 
-def step_rates(name: str, num_envs: list[int], steps: int, repeats: int) -> list[dict]:
+def parse_options(text: str) -> dict:
+    """`model` -> {} (the model's own settings); `iterations=5,timestep=0.01` -> physics options."""
+    if text == "model":
+        return {}
+    return {name: float(value) for name, _, value in (item.partition("=") for item in text.split(","))}
+
+
+def step_rates(name: str, num_envs: list[int], steps: int, repeats: int, backends=BACKENDS, renders=(False, True),
+               options_list=("model",)) -> list[dict]:
     rows = []
-    for backend in BACKENDS:
-        for render in (False, True):
-            for n in num_envs:
-                env = make_env(name, backend, n, render)
-                run = open_loop_program(env, n)
-                key = jax.random.PRNGKey(0)
-                actions = random_actions(jax.random.PRNGKey(1), steps, n, env.action_size)
-                t = timed(lambda: jax.block_until_ready(run(key, actions)), repeats)
-                rows.append({"backend": backend, "render": render, "num_envs": n, "substeps": env.n_substeps, **t,
-                             "env_steps_per_second": n * steps / t["warm_seconds"]})
-                print(rows[-1], flush=True)
+    for options in options_list:
+        for backend in backends:
+            for render in renders:
+                for n in num_envs:
+                    env = make_env(name, backend, n, render, parse_options(options))
+                    run = open_loop_program(env, n)
+                    key = jax.random.PRNGKey(0)
+                    actions = random_actions(jax.random.PRNGKey(1), steps, n, env.action_size)
+                    t = timed(lambda: jax.block_until_ready(run(key, actions)), repeats)
+                    rows.append({"options": options, "backend": backend, "render": render, "num_envs": n,
+                                 "substeps": env.n_substeps, **t,
+                                 "env_steps_per_second": n * steps / t["warm_seconds"]})
+                    print(rows[-1], flush=True)
     return rows
 
 
@@ -184,10 +194,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 5])
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=BACKENDS, help="`step` part")
+    parser.add_argument("--renders", nargs="+", default=["physics", "camera"], choices=["physics", "camera"],
+                        help="`step` part: physics alone, with the camera")
+    parser.add_argument("--options", nargs="+", default=["model"],
+                        help="`step` part: physics options to compare, each `model` (the model's own) or "
+                             "NAME=VALUE,... (envs_mjx.base.Env.set_options), e.g. iterations=5,ls_iterations=8")
     parser.add_argument("--out", default=None, help="JSON file for the results")
     args = parser.parse_args(argv)
     results = {"device": str(jax.devices()[0]), "jax": jax.__version__}
-    jobs = {"step": lambda: step_rates(args.env, args.num_envs, args.steps, args.repeats),
+    jobs = {"step": lambda: step_rates(args.env, args.num_envs, args.steps, args.repeats, args.backends,
+                                       [r == "camera" for r in args.renders], args.options),
             "camera": lambda: camera_rates(args.env, args.num_envs, args.repeats),
             "trajectories": lambda: trajectories(args.env, 256),
             "epoch": lambda: epochs(args.env, args.agent, args.seeds, args.repeats)}

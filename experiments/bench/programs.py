@@ -29,9 +29,12 @@ class SeededProgram(NamedTuple):
     shards: int
 
 
-def make_env(name: str, backend: str, worlds: int, render: bool):
-    """The env `name` stepping its physics with `backend` ("jax" or "warp"), sized for `worlds` envs at once."""
+def make_env(name: str, backend: str, worlds: int, render: bool, options: dict | None = None):
+    """The env `name` stepping its physics with `backend` ("jax" or "warp"), sized for `worlds` envs at once,
+    with the physics `options` (`Env.set_options`) overriding its model's."""
     env = envs_mjx.make(name, render=render)
+    if options:
+        env.set_options(**options)
     if backend != "jax":
         env.use_backend(backend, worlds=worlds)
     return env
@@ -39,15 +42,15 @@ def make_env(name: str, backend: str, worlds: int, render: bool):
 
 def seeded_program(
     name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1, backend: str = "jax",
-    train: dict | None = None,
+    train: dict | None = None, options: dict | None = None,
 ) -> SeededProgram:
     """The training program of `seeds` vmapped seeds of the env's preset for `agent` (with the
     `TrainConfig` overrides `train`) on the first `n_devices` devices, laid out as a run lays them
-    out (`devices.device_layout`), its env's physics on `backend`."""
+    out (`devices.device_layout`), its env's physics on `backend` with the physics `options`."""
     preset = resolve({"env": name, "agent": agent})
     config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})))
     worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
-    env = make_env(name, backend, worlds, render=config.agent.uses_image)
+    env = make_env(name, backend, worlds, render=config.agent.uses_image, options=options)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return SeededProgram(init, epoch, config.train, env, devices, shards)

@@ -5,7 +5,8 @@ included) and env steps to eval success thresholds, seeds vmapped in one program
         --variant preset --variant updates_per_cycle=320 --variant updates_per_cycle=320,batch_size=4096 \
         --out sweep.jsonl
 
-Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the env's preset for the agent;
+Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the env's preset for the agent
+and `opt.NAME=VALUE` physics options (e.g. `opt.iterations=10`, `envs_mjx.base.Env.set_options`);
 the variants run one after another in this process (each builds, compiles and trains its own program). A JSON
 line per epoch: variant, epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds
 since the process started (`process_seconds`, imports and every earlier variant included) and since the
@@ -31,30 +32,37 @@ from experiments.bench.programs import seeded_program  # noqa: E402
 THRESHOLDS = (0.5, 0.8, 0.9)
 
 
-def parse_variant(text: str) -> dict:
-    """`preset` -> {}; `a=1,b=2.5` -> TrainConfig overrides typed as the fields are."""
+def parse_variant(text: str) -> tuple[dict, dict]:
+    """(TrainConfig overrides, physics options) of a variant: `preset` -> ({}, {}); `a=1,b=2.5,opt.iterations=5`
+    -> ({"a": 1, "b": 2.5}, {"iterations": 5.0}), the overrides typed as the fields are; `opt.NAME` entries
+    override the model's physics options (`envs_mjx.base.Env.set_options`)."""
     if text == "preset":
-        return {}
+        return {}, {}
     fields = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
-    overrides = {}
+    overrides, options = {}, {}
     for item in text.split(","):
         name, _, value = item.partition("=")
+        if name.startswith("opt."):
+            options[name[4:]] = float(value)
+            continue
         if name not in fields:
-            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field")
+            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field nor opt.NAME")
         kind = {"int": int, "float": float, "str": str}.get(str(fields[name]), float)
         overrides[name] = kind(value)
-    return overrides
+    return overrides, options
 
 
-def train_variant(args, label: str, overrides: dict, sink) -> None:
+def train_variant(args, label: str, overrides: dict, options: dict, sink) -> None:
     start = time.perf_counter()
-    init, epoch, *_ = seeded_program(args.env, args.agent, args.seeds, backend=args.physics, train=overrides)
+    init, epoch, *_ = seeded_program(args.env, args.agent, args.seeds, backend=args.physics, train=overrides,
+                                     options=options)
     state = init(jax.random.split(jax.random.PRNGKey(args.seed), args.seeds))
     for e in range(1, args.epochs + 1):
         state, metrics = epoch(state)
         success = np.asarray(metrics["eval_success"])
         now = time.perf_counter()
-        row = {"variant": label, "overrides": overrides, "epoch": e, "eval_success": float(success.mean()),
+        row = {"variant": label, "overrides": overrides, "options": options, "epoch": e,
+               "eval_success": float(success.mean()),
                "eval_success_seeds": [round(float(s), 4) for s in success],
                "env_steps_per_seed": int(np.asarray(state.env_steps)[0]),
                "updates_per_seed": int(np.asarray(state.updates)[0]),
@@ -112,8 +120,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("error: --out is required to train (or give --report FILES)")
     variants = [(text, parse_variant(text)) for text in (args.variant or ["preset"])]
     with open(args.out, "a") as sink:
-        for label, overrides in variants:
-            train_variant(args, label, overrides, sink)
+        for label, (overrides, options) in variants:
+            train_variant(args, label, overrides, options, sink)
 
 
 if __name__ == "__main__":
