@@ -1,0 +1,25 @@
+"""experiments.bench.sweep: variants as config overrides and physics options; the report's thresholds."""
+
+import json
+
+import pytest
+
+from experiments.bench import sweep
+
+
+def test_variants_are_typed_overrides_and_physics_options():
+    assert sweep.parse_variant("preset") == ({}, {})
+    overrides, options = sweep.parse_variant("updates_per_cycle=320,actor_lr=0.0005,opt.iterations=5")
+    assert overrides == {"updates_per_cycle": 320, "actor_lr": 0.0005} and type(overrides["updates_per_cycle"]) is int
+    assert options == {"iterations": 5.0}
+    with pytest.raises(SystemExit, match="not a TrainConfig field"):
+        sweep.parse_variant("updates=3")
+
+
+def test_report_gives_the_first_epoch_at_each_threshold(tmp_path):
+    path = tmp_path / "cell.jsonl"
+    rows = [{"variant": "preset", "epoch": e, "eval_success": s, "env_steps_per_seed": 1000 * e,
+             "variant_seconds": 10.0 * e} for e, s in enumerate((0.1, 0.55, 0.85, 0.6), start=1)]
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    table = sweep.report([str(path)])
+    assert "| 20 / 2,000 | 30 / 3,000 | — |" in table
