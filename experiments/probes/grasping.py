@@ -27,7 +27,9 @@ HOVER = 0.06  # m above the cube before descending
 GRASP_HEIGHT = 0.02
 ALIGNED = 0.005  # m
 HELD = 0.04  # m between grasp point and cube while the fingers hold it
-CARRY_STEP = 0.01  # m per step while carrying the cube, gentle enough for the grip
+# m per step while carrying the cube (0.375 m/s): the grip holds; 0.01 left the farthest slide goals
+# (> 0.28 m) unreached once issue 24's slower fingers held the cube only from step ~16 (assets/README.md)
+CARRY_STEP = 0.015
 
 
 def _segment(obs: dict[str, jax.Array], spec: ObservationSpec, name: str) -> jax.Array:

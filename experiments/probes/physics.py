@@ -11,14 +11,20 @@ plain MuJoCo (`mujoco.mj_step`, with the env's own hand commands and target path
 
 Each physics substep records the cube's position, linear and angular velocity and the deepest
 contact of each pair of bodies (hand–cube, hand–table, cube–table) from MuJoCo's contact
-distances; each control step records the proprio the agent sees. `summarize` reduces them to
+distances (plain MuJoCo also the Newton solver's iteration count, `data.solver_niter`: the cost proxy of
+the `iterations` limit; MJX computes it but does not keep it); each control step records the proprio
+the agent sees. `summarize` reduces them to
 the cube's top speed and spin, its greatest height above the table, the restitution of the
 drops (rebound speed over impact speed), the penetration depths, the share of episodes that
 end with the cube more than `FAR` from its start, and what the observation normaliser would
 see: the largest feature std of each proprio segment, the share of entries at the clip, and
 the std of the cube's height (the goal normaliser's height feature).
 
-    python -m experiments.probes.physics --env nicol_lift --envs 64 [--native 8] [--json out.json]
+`--option NAME=VALUE` overrides a scalar of the model's `<option>` (e.g. iterations=5, ls_iterations=6,
+timestep=0.01, cone=elliptic) for exploring settings without editing assets/nicol.xml (`with_options`).
+
+    python -m experiments.probes.physics --env nicol_lift --envs 64 [--native 8] [--option iterations=5]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -34,7 +40,7 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax import normalizer
-from envs_mjx.base import State
+from envs_mjx.base import CONTROL_PERIOD, State
 from envs_mjx.nicol import CUBE_HALF, TABLE_HEIGHT, NicolEnv
 
 SCENARIOS = ("push", "random", "drop")
@@ -51,6 +57,31 @@ PAIRS = {
     "cube_table": (("cube",), ("table",)),
 }
 MAX_CONTACTS = 64  # per substep, for plain MuJoCo's records
+
+
+# ----- option overrides ------------------------------------------------------------------
+def with_options(env: NicolEnv, **options: str | float) -> NicolEnv:
+    """`env` with scalars of its model's `<option>` replaced (in place; returned for chaining): numbers, or
+    the names of MuJoCo's enums for `cone`, `solver` and `integrator` (e.g. cone="elliptic"). A new
+    timestep changes the substeps per control period. The held start of nicol_lift (built at
+    construction) keeps the old options; the probe does not use it."""
+    enums = {"cone": (mujoco.mjtCone, "mjCONE_"), "solver": (mujoco.mjtSolver, "mjSOL_"),
+             "integrator": (mujoco.mjtIntegrator, "mjINT_")}
+    for name, value in options.items():
+        if name in enums:
+            enum, prefix = enums[name]
+            value = enum.__members__[prefix + str(value).upper()]
+        elif np.isscalar(current := getattr(env.mj_model.opt, name)):
+            value = type(current)(value)
+        else:
+            raise ValueError(f"option {name} is not a scalar")
+        setattr(env.mj_model.opt, name, value)
+    n_substeps = CONTROL_PERIOD / env.mj_model.opt.timestep
+    if abs(n_substeps - round(n_substeps)) > 1e-6:
+        raise ValueError(f"timestep {env.mj_model.opt.timestep} does not divide the control period {CONTROL_PERIOD}")
+    env.n_substeps = int(round(n_substeps))
+    env.use_backend("jax")  # MJX's copy of the model
+    return env
 
 
 # ----- scenarios -------------------------------------------------------------------------
@@ -145,7 +176,8 @@ def _mjx_rollouts(env: NicolEnv):
 
 def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) -> dict[str, np.ndarray]:
     """`mjx_rollout` stepped by plain MuJoCo (float64, `mujoco.mj_step`): the same starts, scenario
-    actions, hand commands and target path; `proprio` is left out (its code is MJX's)."""
+    actions, hand commands and target path; `proprio` is left out (its code is MJX's), and
+    `solver_iterations` (envs, steps, substeps) is added (the Newton solver's `data.solver_niter`)."""
     index = jnp.int32(SCENARIOS.index(scenario))
     key_start, key_steps = jax.random.split(key)
     starts = jax.jit(jax.vmap(lambda e, k: start_state(env, index, e, k)))(
@@ -163,6 +195,7 @@ def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) ->
     motion = np.zeros((n_envs, STEPS, env.n_substeps, 9))
     geom = np.zeros((n_envs, STEPS, env.n_substeps, MAX_CONTACTS, 2), np.int32)
     dist = np.full((n_envs, STEPS, env.n_substeps, MAX_CONTACTS), np.inf)
+    iterations = np.zeros((n_envs, STEPS, env.n_substeps), np.int32)
     for step, key_step in enumerate(jax.random.split(key_steps, STEPS)):
         hand = np.stack([d.xpos[env._hand] for d in datas])
         cube = np.stack([d.xpos[env._cube] for d in datas])
@@ -177,12 +210,14 @@ def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) ->
                 mujoco.mj_step(model, data)
                 n = min(data.ncon, MAX_CONTACTS)
                 motion[i, step, sub] = cube_motion(env, data.qpos, data.qvel, np.concatenate)
+                iterations[i, step, sub] = data.solver_niter[0]
                 geom[i, step, sub, :n] = data.contact.geom[:n]
                 dist[i, step, sub, :n] = data.contact.dist[:n]
     pairs = pair_geoms(model)
     depths = jax.jit(jax.vmap(lambda g, d: contact_depths(g, d, pairs)))
     depth = depths(geom.reshape(-1, MAX_CONTACTS, 2), dist.reshape(-1, MAX_CONTACTS))
-    return {"motion": motion, "depth": np.asarray(depth).reshape(*motion.shape[:3], -1)}
+    depth = np.asarray(depth).reshape(*motion.shape[:3], -1)
+    return {"motion": motion, "depth": depth, "solver_iterations": iterations}
 
 
 # ----- figures ----------------------------------------------------------------------------
@@ -214,6 +249,9 @@ def summarize(env: NicolEnv, scenario: str, rollout: dict) -> dict:
             "max_height": float(height.max()),
             "far_share": float((np.linalg.norm(pos[:, -1] - pos[:, 0], axis=-1) > FAR).mean()),
         }
+    if "solver_iterations" in rollout:
+        iterations = np.asarray(rollout["solver_iterations"])
+        figures |= {"solver_iterations_mean": float(iterations.mean()), "solver_iterations_max": int(iterations.max())}
     if "proprio" in rollout:
         figures |= normalizer_figures(env, np.asarray(rollout["proprio"]))
     return figures
@@ -260,11 +298,17 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--envs", type=int, default=64, help="MJX episodes per scenario")
     parser.add_argument("--native", type=int, default=0, help="plain-MuJoCo episodes per scenario (0: none)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                        help="override a scalar of the model's <option> (repeatable), e.g. iterations=5")
     parser.add_argument("--json", help="also write the figures to this JSON file")
     args = parser.parse_args(argv)
     if args.envs < 1 or args.native < 0:
         parser.error("--envs must be positive and --native not negative")
-    report = check(envs_mjx.make(args.env, render=False), jax.random.PRNGKey(args.seed), args.envs, args.native)
+    options = dict(option.split("=", 1) for option in args.option if "=" in option)
+    if len(options) != len(args.option):
+        parser.error("--option takes NAME=VALUE")
+    env = with_options(envs_mjx.make(args.env, render=False), **options)
+    report = check(env, jax.random.PRNGKey(args.seed), args.envs, args.native)
     print(format_table(report))
     if args.json:
         with open(args.json, "w") as f:
