@@ -97,6 +97,29 @@ def substeps(timestep: float) -> int:
     return int(round(n_substeps))
 
 
+_OPTION_ENUMS = {"cone": (mujoco.mjtCone, "mjCONE_"), "solver": (mujoco.mjtSolver, "mjSOL_"),
+                 "integrator": (mujoco.mjtIntegrator, "mjINT_")}
+
+
+def _option_value(opt: mujoco.MjOption, name: str, value: float | str):
+    """`value` as the type of `opt.NAME` (an enum from its name for cone, solver and integrator); ValueError
+    naming what is allowed for anything else."""
+    if name in _OPTION_ENUMS:
+        enum, prefix = _OPTION_ENUMS[name]
+        names = [m[len(prefix):].lower() for m in enum.__members__]
+        if str(value).lower() not in names:
+            raise ValueError(f"{name}={value!r}: valid {name}s are {', '.join(names)}")
+        return enum.__members__[prefix + str(value).upper()]
+    current = getattr(opt, name, None) if not name.startswith("_") else None
+    if current is None or not np.isscalar(current):
+        raise ValueError(f"{name!r} is not a scalar physics option; valid: fields of mujoco.MjOption such as "
+                         "timestep, iterations, ls_iterations, tolerance, impratio, cone, solver, integrator")
+    try:
+        return type(current)(float(value))
+    except ValueError as err:
+        raise ValueError(f"{name}={value!r}: not a number") from err
+
+
 def load_model(filename: str) -> mujoco.MjModel:
     """Load an MJCF model from `assets/` (the installed package `envs_mjx.assets`)."""
     with importlib.resources.as_file(ASSETS_DIR / filename) as path:
@@ -191,21 +214,21 @@ class Env(abc.ABC):
             raise ValueError(f"unknown physics backend {backend!r}; valid: jax, warp")
         self.backend = backend
 
-    def set_options(self, **options: float) -> None:
-        """Override fields of the model's physics options (`mujoco.MjOption`: timestep, iterations,
-        ls_iterations, tolerance, impratio, ...) and rebuild the physics, e.g. `set_options(iterations=5)`.
+    def set_options(self, **options: float | str) -> None:
+        """Override scalars of the model's physics options (`mujoco.MjOption`: timestep, iterations,
+        ls_iterations, tolerance, impratio, ...; for `cone`, `solver` and `integrator` the name of MuJoCo's enum
+        value, e.g. cone="elliptic") and rebuild the physics, e.g. `set_options(iterations=5)`. A new timestep
+        changes the substeps per control period (nicol_lift's held start, built at construction, keeps the old).
 
         For measuring what a setting costs and does (`experiments.bench.engine --options`, `experiments.bench.sweep`
-        variants `opt.NAME=VALUE`); a task's own settings are its model file's. Call it before `use_backend`."""
+        variants `opt.NAME=VALUE`, `experiments.probes.physics --option`); a task's own settings are its model
+        file's. Call it before `use_backend`; nothing is changed when a value is refused."""
         if self.backend != "jax":
             raise ValueError(f"set_options before use_backend: this env already steps on {self.backend!r}")
-        for name, value in options.items():
-            if name.startswith("_") or not hasattr(self.mj_model.opt, name):
-                raise ValueError(f"{name!r} is not a physics option; valid: fields of mujoco.MjOption such as "
-                                 "timestep, iterations, ls_iterations, tolerance")
-        n_substeps = substeps(options.get("timestep", self.mj_model.opt.timestep))
-        for name, value in options.items():
-            setattr(self.mj_model.opt, name, type(getattr(self.mj_model.opt, name))(value))
+        values = {name: _option_value(self.mj_model.opt, name, value) for name, value in options.items()}
+        n_substeps = substeps(values.get("timestep", self.mj_model.opt.timestep))
+        for name, value in values.items():
+            setattr(self.mj_model.opt, name, value)
         self.n_substeps = n_substeps
         self.use_backend("jax")
 

@@ -70,10 +70,11 @@ def open_loop_program(env, n: int):
 
 
 def parse_options(text: str) -> dict:
-    """`model` -> {} (the model's own settings); `iterations=5,timestep=0.01` -> physics options."""
+    """`model` -> {} (the model's own settings); `iterations=5,cone=elliptic` -> physics options
+    (`Env.set_options` converts and checks the values)."""
     if text == "model":
         return {}
-    return {name: float(value) for name, _, value in (item.partition("=") for item in text.split(","))}
+    return {name: value for name, _, value in (item.partition("=") for item in text.split(","))}
 
 
 def step_rates(name: str, num_envs: list[int], steps: int, repeats: int, backends=BACKENDS, renders=(False, True),

@@ -34,7 +34,7 @@ THRESHOLDS = (0.5, 0.8, 0.9)
 
 def parse_variant(text: str) -> tuple[dict, dict]:
     """(TrainConfig overrides, physics options) of a variant: `preset` -> ({}, {}); `a=1,b=2.5,opt.iterations=5`
-    -> ({"a": 1, "b": 2.5}, {"iterations": 5.0}), the overrides typed as the fields are; `opt.NAME` entries
+    -> ({"a": 1, "b": 2.5}, {"iterations": "5"}), the overrides typed as the fields are; `opt.NAME` entries
     override the model's physics options (`envs_mjx.base.Env.set_options`)."""
     if text == "preset":
         return {}, {}
@@ -43,7 +43,7 @@ def parse_variant(text: str) -> tuple[dict, dict]:
     for item in text.split(","):
         name, _, value = item.partition("=")
         if name.startswith("opt."):
-            options[name[4:]] = float(value)
+            options[name[4:]] = value  # converted and checked by Env.set_options
             continue
         if name not in fields:
             raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field nor opt.NAME")

@@ -21,7 +21,7 @@ see: the largest feature std of each proprio segment, the share of entries at th
 the std of the cube's height (the goal normaliser's height feature).
 
 `--option NAME=VALUE` overrides a scalar of the model's `<option>` (e.g. iterations=5, ls_iterations=6,
-timestep=0.01, cone=elliptic) for exploring settings without editing assets/nicol.xml (`with_options`).
+timestep=0.01, cone=elliptic) for exploring settings without editing assets/nicol.xml (`Env.set_options`).
 
     python -m experiments.probes.physics --env nicol_lift --envs 64 [--native 8] [--option iterations=5]
         [--json out.json]
@@ -40,7 +40,7 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax import normalizer
-from envs_mjx.base import CONTROL_PERIOD, State
+from envs_mjx.base import State
 from envs_mjx.nicol import CUBE_HALF, TABLE_HEIGHT, NicolEnv
 
 SCENARIOS = ("push", "random", "drop")
@@ -57,31 +57,6 @@ PAIRS = {
     "cube_table": (("cube",), ("table",)),
 }
 MAX_CONTACTS = 64  # per substep, for plain MuJoCo's records
-
-
-# ----- option overrides ------------------------------------------------------------------
-def with_options(env: NicolEnv, **options: str | float) -> NicolEnv:
-    """`env` with scalars of its model's `<option>` replaced (in place; returned for chaining): numbers, or
-    the names of MuJoCo's enums for `cone`, `solver` and `integrator` (e.g. cone="elliptic"). A new
-    timestep changes the substeps per control period. The held start of nicol_lift (built at
-    construction) keeps the old options; the probe does not use it."""
-    enums = {"cone": (mujoco.mjtCone, "mjCONE_"), "solver": (mujoco.mjtSolver, "mjSOL_"),
-             "integrator": (mujoco.mjtIntegrator, "mjINT_")}
-    for name, value in options.items():
-        if name in enums:
-            enum, prefix = enums[name]
-            value = enum.__members__[prefix + str(value).upper()]
-        elif np.isscalar(current := getattr(env.mj_model.opt, name)):
-            value = type(current)(value)
-        else:
-            raise ValueError(f"option {name} is not a scalar")
-        setattr(env.mj_model.opt, name, value)
-    n_substeps = CONTROL_PERIOD / env.mj_model.opt.timestep
-    if abs(n_substeps - round(n_substeps)) > 1e-6:
-        raise ValueError(f"timestep {env.mj_model.opt.timestep} does not divide the control period {CONTROL_PERIOD}")
-    env.n_substeps = int(round(n_substeps))
-    env.use_backend("jax")  # MJX's copy of the model
-    return env
 
 
 # ----- scenarios -------------------------------------------------------------------------
@@ -307,7 +282,11 @@ def main(argv: list[str] | None = None) -> None:
     options = dict(option.split("=", 1) for option in args.option if "=" in option)
     if len(options) != len(args.option):
         parser.error("--option takes NAME=VALUE")
-    env = with_options(envs_mjx.make(args.env, render=False), **options)
+    env = envs_mjx.make(args.env, render=False)
+    try:
+        env.set_options(**options)
+    except ValueError as err:
+        parser.error(f"--option: {err}")
     report = check(env, jax.random.PRNGKey(args.seed), args.envs, args.native)
     print(format_table(report))
     if args.json:

@@ -131,11 +131,14 @@ def test_mjx_matches_mujoco_mj_step(name):
 
 def test_set_options_overrides_the_physics_and_rejects_what_it_cannot_use():
     env = envs_mjx.make("planar_reach", render=False)
-    env.set_options(iterations=3, timestep=0.005)
+    env.set_options(iterations="3", timestep=0.005, cone="elliptic")
     assert env.mj_model.opt.iterations == 3 and int(env.mjx_model.opt.iterations) == 3
+    assert int(env.mjx_model.opt.cone) == int(mujoco.mjtCone.mjCONE_ELLIPTIC)
     assert env.n_substeps == 8 and float(env.mjx_model.opt.timestep) == pytest.approx(0.005)
-    with pytest.raises(ValueError, match="not a physics option"):
+    with pytest.raises(ValueError, match="not a scalar physics option"):
         env.set_options(frobnicate=1)
+    with pytest.raises(ValueError, match="valid cones are pyramidal, elliptic"):
+        env.set_options(cone="round")
     with pytest.raises(ValueError, match="does not divide"):
         env.set_options(timestep=0.03, iterations=7)
     assert env.mj_model.opt.iterations == 3 and env.n_substeps == 8  # nothing half-applied

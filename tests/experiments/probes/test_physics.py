@@ -67,14 +67,6 @@ def test_native_rollouts_report_the_solver_iterations_used(reports, env):
         assert 1 <= figures["solver_iterations_mean"] <= figures["solver_iterations_max"] <= env.mj_model.opt.iterations
 
 
-def test_option_overrides_reach_both_models_and_the_substeps():
-    env = physics_check.with_options(NicolLift(render=False), iterations="3", timestep=0.01, cone="elliptic")
-    assert env.mj_model.opt.iterations == 3 and env.n_substeps == 4
-    assert int(env.mjx_model.opt.iterations) == 3 and int(env.mjx_model.opt.cone) == 1  # mjCONE_ELLIPTIC
-    with pytest.raises(ValueError, match="divide"):
-        physics_check.with_options(env, timestep=0.003)
-
-
 def test_contact_depths_pick_the_deepest_contact_of_each_pair(env):
     pairs = physics_check.pair_geoms(env.mj_model)
     ids = {n: env.mj_model.geom(n).id for n in ("cube", "table", "r_thumb", "r_palm")}
