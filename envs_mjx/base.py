@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import hashlib
 import importlib.resources
 from collections.abc import Callable
 from typing import Any
@@ -231,6 +232,16 @@ class Env(abc.ABC):
             setattr(self.mj_model.opt, name, value)
         self.n_substeps = n_substeps
         self.use_backend("jax")
+
+    @property
+    def physics_id(self) -> str:
+        """A fingerprint of the physics this env steps: 16 hex digits of the SHA-256 of its compiled model
+        (MuJoCo's binary MJB, so every number of the model file and of `set_options` counts; a MuJoCo release
+        that changes the format changes it too). Runs record it in config.json (`bidal_jax.run.loop`), and
+        `experiments.paper.claims` marks runs made on other physics than today's."""
+        buffer = np.zeros(mujoco.mj_sizeModel(self.mj_model), np.uint8)
+        mujoco.mj_saveModel(self.mj_model, None, buffer)
+        return hashlib.sha256(buffer.tobytes()).hexdigest()[:16]
 
     def blank_data(self) -> mjx.Data:
         """A fresh `mjx.Data` of this env's backend, to be filled by `_reset_data`."""

@@ -46,7 +46,8 @@ def _column(rows: list[dict[str, str]], name: str) -> np.ndarray:
 def load_run(run_dir: str) -> dict:
     """One run: its config, env, agent, seeds and per-epoch arrays.
 
-    Keys: "dir", "name" (basename), "config" (the parsed config.json), "env", "agent",
+    Keys: "dir", "name" (basename), "config" (the parsed config.json), "env", "agent", "physics" (the
+    fingerprints of the physics it trained on, `envs_mjx.base.Env.physics_id`; [] for runs older than the record),
     "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
     "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
     success of each seed). Raises RunError naming the path.
@@ -80,8 +81,14 @@ def load_run(run_dir: str) -> dict:
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
         "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
-        WITH_COMPILE: with_compile, "success": success,
+        WITH_COMPILE: with_compile, "success": success, "physics": physics_of(config),
     }
+
+
+def physics_of(config: dict) -> list[str]:
+    """The physics fingerprints a run's config.json records (`bidal_jax.run.loop.physics_record`); [] if none."""
+    physics = config.get("physics")
+    return [str(p) for p in physics] if isinstance(physics, list) else []
 
 
 def with_compile_times(run: dict) -> tuple[dict, bool]:

@@ -24,15 +24,17 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
 def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal",
-                   compile_seconds: float | None = None) -> None:
+                   compile_seconds: float | None = None, physics: list[str] | None = None) -> None:
     """A run directory as `loop.train` writes it (config.json, metrics.csv), with an (empty) checkpoint
     step unless `checkpoint_epoch` is None. `rows`: per epoch, each seed's eval success; every
     epoch is 100 env steps per seed and 10 s of wall time. With `compile_seconds`, metrics.csv has
-    `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column."""
+    `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column. With
+    `physics`, config.json records those physics fingerprints; without, it is a run recorded before them."""
     seeds = len(rows[0])
     os.makedirs(run_dir if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
     with open(os.path.join(run_dir, "config.json"), "w") as f:
-        json.dump({"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}, f)
+        config = {"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}
+        json.dump(config | ({"physics": physics} if physics is not None else {}), f)
     with open(os.path.join(run_dir, "metrics.csv"), "w", newline="") as f:
         writer = csv.writer(f)
         with_compile = [] if compile_seconds is None else ["wall_time_with_compile"]

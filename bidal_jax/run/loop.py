@@ -121,6 +121,19 @@ def train(
             rundir.release(run_dir)
 
 
+def physics_record(run_dir: str, physics_id: str, resume: bool) -> list[str]:
+    """config.json's "physics": the fingerprints (`Env.physics_id`) of the physics the run has trained on, in order:
+    a resumed run keeps its earlier ones and adds today's if it differs (a run resumed after a model change)."""
+    earlier = []
+    if resume:
+        try:
+            with open(os.path.join(run_dir, "config.json")) as f:
+                earlier = list(json.load(f).get("physics", []))
+        except (OSError, ValueError, TypeError):
+            earlier = []  # a missing or damaged copy: what came before is unknown
+    return earlier if earlier[-1:] == [physics_id] else [*earlier, physics_id]
+
+
 def _last_good(saved: int | None, ckpt_dir: str) -> str:
     return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
 
@@ -134,7 +147,7 @@ def _train(
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
         epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize)
-        cfg = config.to_dict()
+        cfg = {**config.to_dict(), "physics": physics_record(run.run_dir, env.physics_id, resume)}
         saved = start_epoch if resume else None
         with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             if main:

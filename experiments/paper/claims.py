@@ -20,9 +20,10 @@ when the interval lies on the claimed side of 0, against when on the other, else
 check favours or is against. "reproduced": every check favours; "reversed": none favours and one is
 against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer
 epochs than its budget: the curves grid's epochs per task, or the env and agent preset's for the noise
-and transfer runs, or its config's if more), its figures still shown. Runs of a task named by `--stale`
-(e.g. made before a fix of its physics; run folders record no physics version) get their verdict
-qualified "measured on runs that predate the fixed ... tasks".
+and transfer runs, or its config's if more), its figures still shown. Runs made on other physics than
+the task's model today (config.json records the fingerprints of the physics a run trained on,
+`envs_mjx.base.Env.physics_id`; runs older than that record none), and runs of a task named by `--stale`,
+get their verdict qualified "measured on ... runs not recorded on today's physics".
 
 Exit codes: 0 written; 2 bad option (one `error: ...` line).
 """
@@ -31,12 +32,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import sys
 from typing import Sequence
 
 import numpy as np
 
+import envs_mjx
 from bidal_jax.config import AGENTS
 from experiments import cli, report, stats
 from experiments.paper import grid, protocol
@@ -83,7 +86,7 @@ def judged(checks: Sequence[str], gaps: Sequence[str], tasks: set[str], stale: s
     text = f"{NOT_MEASURED}: {'; '.join(gaps[:3])}" + (f" (+{len(gaps) - 3} more)" if len(gaps) > 3 else "") \
         if gaps else verdict(checks)
     old = sorted(tasks & stale)
-    return text + (f"; measured on runs that predate the fixed {', '.join(old)} tasks" if old else "")
+    return text + (f"; measured on {', '.join(old)} runs not recorded on today's physics" if old else "")
 
 
 def gap(name: str, run: dict | None, budget: int) -> str | None:
@@ -257,8 +260,33 @@ def claims_table(rows: Sequence[Claim]) -> str:
                                  [[r.claim, r.ours, r.paper, r.verdict, r.rule] for r in rows])
 
 
+def other_physics(folders: Sequence[str]) -> dict[str, int]:
+    """Task -> how many runs below `folders` trained on other physics than its env steps today: a run whose
+    config.json records fingerprints (`Env.physics_id`) other than today's alone, or none (runs older than the
+    record). Tasks no longer registered are left out."""
+    today: dict[str, str | None] = {}
+    counts: dict[str, int] = {}
+    for folder in folders:
+        for where, _, files in os.walk(folder):
+            if "config.json" not in files or "metrics.csv" not in files:
+                continue
+            try:
+                with open(os.path.join(where, "config.json")) as f:
+                    config = json.load(f)
+                env = config["run"]["env"]
+            except (OSError, ValueError, KeyError, TypeError):
+                continue  # not a run this report reads (report.load_run says why where it reads one)
+            if env not in today:
+                today[env] = envs_mjx.make(env, render=False).physics_id if env in envs_mjx.names() else None
+            if today[env] and report.physics_of(config) != [today[env]]:
+                counts[env] = counts.get(env, 0) + 1
+    return counts
+
+
 def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set[str], last_n: int,
                   command: str) -> str:
+    other = other_physics([curves_dir, noise_dir, transfer_dir])
+    named, stale = stale, stale | set(other)
     rows = [*learning_claims(load_grid(curves_dir), last_n, stale), *noise_claims(noise_dir, stale),
             *transfer_claims(transfer_dir, stale)]
     return "\n".join([
@@ -271,8 +299,11 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set
         "",
         claims_table(rows),
         "",
-        *([f"Stale (--stale): {', '.join(sorted(stale))}, whose runs were made before the fix of the task; run "
-           "folders record no physics version, so the option names them.", ""] if stale else []),
+        *([f"Runs not recorded on today's physics (their config.json records another fingerprint of the model, "
+           f"`Env.physics_id`, or, older than that record, none): "
+           f"{', '.join(f'{t} ({n} runs)' for t, n in sorted(other.items()))}.", ""]
+          if other else []),
+        *([f"Named stale (--stale): {', '.join(sorted(named))}.", ""] if named else []),
         f"Regenerate: `{command}`",
         "",
     ])
@@ -284,8 +315,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--noise", default=os.path.join("results", "noise"), help="the noise experiment's folder")
     parser.add_argument("--transfer", default=os.path.join("results", "transfer"), help="the transfer folder")
     parser.add_argument("--out", default=os.path.join("results", "claims.md"), help="the Markdown file written")
-    parser.add_argument("--stale", default="", help="comma list of tasks whose runs predate a fix of the task "
-                        "(their verdicts say so)")
+    parser.add_argument("--stale", default="", help="comma list of tasks whose runs to count as made on other "
+                        "physics than today's besides those whose config.json says so (their verdicts say so)")
     parser.add_argument("--last-n", type=int, default=10, help="epochs of the curves' final success")
     return parser
 

@@ -3,6 +3,7 @@ any moment (mid-save included) leaves a checkpoint to resume from; SIGINT and SI
 one and exit with 130 and 143."""
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -13,7 +14,8 @@ import jax
 import numpy as np
 import pytest
 
-from bidal_jax.run import checkpoint
+import envs_mjx
+from bidal_jax.run import checkpoint, loop
 from experiments import run
 from tests.helpers import restored_state
 
@@ -61,6 +63,25 @@ def test_stopped_and_resumed_run_is_bit_identical(tmp_path, straight):
         f.write(f"{EPOCHS // 2 + 1},{last}\n{EPOCHS // 2 + 2},0.5")
     assert run.main(["--resume", "--run-dir", str(run_dir), "--epochs", str(EPOCHS), "--quiet"]) == 0
     assert_same_run(run_dir, straight)
+    # config.json records the physics the run trained on, once: the resumed part ran on the same
+    physics = envs_mjx.make("planar_reach", render=False).physics_id
+    assert json.loads((run_dir / "config.json").read_text())["physics"] == [physics]
+
+
+def test_physics_record_keeps_a_resumed_runs_history(tmp_path):
+    assert loop.physics_record(str(tmp_path), "new", resume=True) == ["new"]  # no config.json: unknown history
+    (tmp_path / "config.json").write_text(json.dumps({"physics": ["old"]}))
+    assert loop.physics_record(str(tmp_path), "new", resume=True) == ["old", "new"]
+    assert loop.physics_record(str(tmp_path), "old", resume=True) == ["old"]
+    assert loop.physics_record(str(tmp_path), "new", resume=False) == ["new"]  # a fresh start: its own physics
+
+
+def test_physics_id_follows_the_model_options():
+    env = envs_mjx.make("planar_reach", render=False)
+    before = env.physics_id
+    assert len(before) == 16 and envs_mjx.make("planar_reach", render=False).physics_id == before
+    env.set_options(iterations=env.mj_model.opt.iterations + 1)
+    assert env.physics_id != before
 
 
 def start(argv, log_dir, name) -> subprocess.Popen:

@@ -1,14 +1,30 @@
 """experiments.paper.claims on hand-written run folders (conftest's `write_fake_run`): each verdict
 (reproduced, not reproduced, reversed, not measured) and the stale-task qualifier."""
 
+import functools
 import shutil
+import types
 
 import pytest
 
 from bidal_jax.config import AGENTS
 from experiments.paper import claims, protocol
+from tests.conftest import write_fake_run
 
 EPOCHS = 100  # the NICOL presets' budget, which the fake runs must reach to be measured
+TODAY = "0123456789abcdef"  # every env's physics fingerprint in these tests
+
+
+@pytest.fixture(autouse=True)
+def todays_physics(monkeypatch):
+    """Every env steps the physics `TODAY` (no env is built)."""
+    monkeypatch.setattr(claims.envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(physics_id=TODAY))
+
+
+@pytest.fixture
+def fake_run():
+    """`write_fake_run` of runs made on today's physics."""
+    return functools.partial(write_fake_run, physics=[TODAY])
 
 
 def rows(levels, epochs=EPOCHS, wobble=0.0):
@@ -52,12 +68,12 @@ def test_transfer_not_measured_when_an_arm_is_missing_or_short_and_stale_tasks_q
     assert claims.transfer_claims(str(tmp_path / "missing"), set())[0].verdict == "not measured: scratch missing"
     write_transfer(fake_run, tmp_path / "short", 0.1, 0.02, scratch_epochs=30)
     steps = claims.transfer_claims(str(tmp_path / "short"), {"nicol_lift_reduced"})[0]
-    assert steps.verdict == ("not measured: scratch short (30 of 100 epochs); measured on runs that predate "
-                             "the fixed nicol_lift_reduced tasks")
+    assert steps.verdict == ("not measured: scratch short (30 of 100 epochs); measured on nicol_lift_reduced runs "
+                             "not recorded on today's physics")
     assert "[" in steps.ours  # the figure and its interval are shown all the same
     write_transfer(fake_run, tmp_path / "stale", 0.1, 0.02)
     steps = claims.transfer_claims(str(tmp_path / "stale"), {"nicol_slide", "ur5_reach"})[0]
-    assert steps.verdict == "reproduced; measured on runs that predate the fixed nicol_slide tasks"
+    assert steps.verdict == "reproduced; measured on nicol_slide runs not recorded on today's physics"
 
 
 def write_grid(fake_run, out):
@@ -119,3 +135,21 @@ def test_learning_claims_not_reproduced_when_the_visual_baseline_learns_a_task(t
     learn, visual, *_ = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
     assert learn.verdict == "reproduced" and visual.verdict == "not reproduced"
     assert visual.ours.startswith("highest: visual_baseline on planar_reach 0.660")
+
+
+def test_runs_on_other_or_unrecorded_physics_qualify_their_claims(tmp_path, fake_run):
+    write_grid(fake_run, tmp_path / "curves")
+    write_noise(fake_run, tmp_path / "noise")
+    write_transfer(fake_run, tmp_path / "transfer", 0.1, 0.02)
+    assert claims.other_physics([str(tmp_path)]) == {}
+    # the scratch arm was made before its physics was recorded, the transfer arm resumed after a model change
+    shutil.rmtree(tmp_path / "transfer")
+    write_fake_run(str(tmp_path / "transfer" / "scratch"), "nicol_lift_reduced", rising(0.02), None)
+    fake_run(str(tmp_path / "transfer" / "transfer"), "nicol_lift_reduced", rising(0.1), None, physics=["old", TODAY])
+    assert claims.other_physics([str(tmp_path)]) == {"nicol_lift_reduced": 2}
+    out = str(tmp_path / "claims.md")
+    assert claims.main(["--curves", str(tmp_path / "curves"), "--noise", str(tmp_path / "noise"), "--transfer",
+                        str(tmp_path / "transfer"), "--out", out]) == 0
+    text = open(out).read()
+    assert "(c) " in text and "reproduced; measured on nicol_lift_reduced runs not recorded on today's physics" in text
+    assert "Runs not recorded on today's physics" in text and "nicol_lift_reduced (2 runs)" in text
