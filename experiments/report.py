@@ -46,8 +46,7 @@ def _column(rows: list[dict[str, str]], name: str) -> np.ndarray:
 def load_run(run_dir: str) -> dict:
     """One run: its config, env, agent, seeds and per-epoch arrays.
 
-    Keys: "dir", "name" (basename), "config" (the parsed config.json), "env", "agent", "physics" (the
-    fingerprints of the physics it trained on, `envs_mjx.base.Env.physics_id`; [] for runs older than the record),
+    Keys: "dir", "name" (basename), "config" (the parsed config.json; `physics_of` reads its physics), "env", "agent",
     "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
     "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
     success of each seed). Raises RunError naming the path.
@@ -81,7 +80,7 @@ def load_run(run_dir: str) -> dict:
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
         "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
-        WITH_COMPILE: with_compile, "success": success, "physics": physics_of(config),
+        WITH_COMPILE: with_compile, "success": success,
     }
 
 

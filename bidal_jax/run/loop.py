@@ -130,7 +130,7 @@ def physics_record(run_dir: str, physics_id: str, resume: bool) -> list[str]:
             with open(os.path.join(run_dir, "config.json")) as f:
                 earlier = list(json.load(f).get("physics", []))
         except (OSError, ValueError, TypeError):
-            earlier = []  # a missing or damaged copy: what came before is unknown
+            pass  # a missing or damaged copy: what came before is unknown
     return earlier if earlier[-1:] == [physics_id] else [*earlier, physics_id]
 
 

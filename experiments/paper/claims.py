@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import sys
 from typing import Sequence
@@ -268,17 +267,16 @@ def other_physics(folders: Sequence[str]) -> dict[str, int]:
     counts: dict[str, int] = {}
     for folder in folders:
         for where, _, files in os.walk(folder):
-            if "config.json" not in files or "metrics.csv" not in files:
+            if "config.json" not in files:
                 continue
             try:
-                with open(os.path.join(where, "config.json")) as f:
-                    config = json.load(f)
-                env = config["run"]["env"]
-            except (OSError, ValueError, KeyError, TypeError):
-                continue  # not a run this report reads (report.load_run says why where it reads one)
+                run = report.load_run(where)
+            except report.RunError:
+                continue  # not a run the claims read (they say why where they need it)
+            env = run["env"]
             if env not in today:
                 today[env] = envs_mjx.make(env, render=False).physics_id if env in envs_mjx.names() else None
-            if today[env] and report.physics_of(config) != [today[env]]:
+            if today[env] and report.physics_of(run["config"]) != [today[env]]:
                 counts[env] = counts.get(env, 0) + 1
     return counts
 
