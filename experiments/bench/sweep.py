@@ -11,7 +11,8 @@ the variants run one after another in this process (each builds, compiles and tr
 line per epoch: variant, epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds
 since the process started (`process_seconds`, imports and every earlier variant included) and since the
 variant started (`variant_seconds`, its build and compilation included). `--physics warp` steps the env with
-MuJoCo Warp (envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up.
+MuJoCo Warp (envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up, `--until S` once its
+mean eval success has reached S (a time-to-success sweep needs no epochs past its last threshold).
 """
 
 from __future__ import annotations
@@ -72,6 +73,8 @@ def train_variant(args, label: str, overrides: dict, options: dict, sink) -> Non
         print(f"{label} epoch {e}: {row['eval_success']:.3f} at {row['variant_seconds']:.0f} s", flush=True)
         if args.minutes and row["variant_seconds"] > 60 * args.minutes:
             break
+        if args.until and row["eval_success"] >= args.until:
+            break
 
 
 def first_reach(rows: list[dict], threshold: float) -> dict | None:
@@ -108,6 +111,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--epochs", type=int, default=50)
     parser.add_argument("--minutes", type=float, default=0.0, help="stop a variant after this many minutes (0: never)")
+    parser.add_argument("--until", type=float, default=0.0,
+                        help="stop a variant once its mean eval success reaches this (0: never)")
     parser.add_argument("--physics", default="jax", choices=["jax", "warp"])
     parser.add_argument("--variant", action="append", default=None, help="preset, or k=v,k=v TrainConfig overrides")
     parser.add_argument("--out", help="JSON-lines file, appended to")
@@ -116,6 +121,8 @@ def main(argv: list[str] | None = None) -> None:
     if args.report:
         print(report(args.report))
         return
+    if not 0.0 <= args.until <= 1.0:
+        raise SystemExit(f"error: --until {args.until}: a success rate in [0, 1] is allowed (0: never stop early)")
     if not args.out:
         raise SystemExit("error: --out is required to train (or give --report FILES)")
     variants = [(text, parse_variant(text)) for text in (args.variant or ["preset"])]

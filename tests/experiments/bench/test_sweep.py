@@ -23,3 +23,22 @@ def test_report_gives_the_first_epoch_at_each_threshold(tmp_path):
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
     table = sweep.report([str(path)])
     assert "| 20 / 2,000 | 30 / 3,000 | — |" in table
+
+
+def test_until_stops_a_variant_at_its_threshold(tmp_path, monkeypatch):
+    import types
+
+    import numpy as np
+
+    successes = iter((0.2, 0.6, 0.95, 0.97))
+
+    def fake_program(*args, **kwargs):
+        state = types.SimpleNamespace(env_steps=np.zeros(2, int), updates=np.zeros(2, int))
+        return lambda keys: state, lambda s: (s, {"eval_success": np.full(2, next(successes))})
+
+    monkeypatch.setattr(sweep, "seeded_program", fake_program)
+    out = tmp_path / "cell.jsonl"
+    sweep.main(["--env", "planar_reach", "--seeds", "2", "--epochs", "4", "--until", "0.9", "--out", str(out)])
+    assert [json.loads(line)["epoch"] for line in out.read_text().splitlines()] == [1, 2, 3]
+    with pytest.raises(SystemExit, match=r"--until 1.5: a success rate in \[0, 1\]"):
+        sweep.main(["--until", "1.5", "--out", str(out)])
