@@ -42,13 +42,15 @@ def make_env(name: str, backend: str, worlds: int, render: bool, options: dict |
 
 def seeded_program(
     name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1, backend: str = "jax",
-    train: dict | None = None, options: dict | None = None,
+    train: dict | None = None, options: dict | None = None, network: dict | None = None,
 ) -> SeededProgram:
     """The training program of `seeds` vmapped seeds of the env's preset for `agent` (with the
-    `TrainConfig` overrides `train`) on the first `n_devices` devices, laid out as a run lays them
-    out (`devices.device_layout`), its env's physics on `backend` with the physics `options`."""
+    `TrainConfig` overrides `train` and `NetworkConfig` overrides `network`) on the first `n_devices` devices,
+    laid out as a run lays them out (`devices.device_layout`), its env's physics on `backend` with the physics
+    `options`."""
     preset = resolve({"env": name, "agent": agent})
-    config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})))
+    config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})),
+                                 network=dataclasses.replace(preset.network, **(network or {})))
     worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
     env = make_env(name, backend, worlds, render=config.agent.uses_image, options=options)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])

@@ -5,13 +5,14 @@ included) and env steps to eval success thresholds, seeds vmapped in one program
         --variant preset --variant updates_per_cycle=320 --variant updates_per_cycle=320,batch_size=4096 \
         --out sweep.jsonl
 
-Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the env's preset for the agent
-and `opt.NAME=VALUE` physics options (e.g. `opt.iterations=10`, `envs_mjx.base.Env.set_options`);
-the variants run one after another in this process (each builds, compiles and trains its own program). A JSON
-line per epoch: variant, epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds
-since the process started (`process_seconds`, imports and every earlier variant included) and since the
-variant started (`variant_seconds`, its build and compilation included). `--physics warp` steps the env with
-MuJoCo Warp (envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up, `--until S` once its
+Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the env's preset for the agent,
+`net.NAME=VALUE` `NetworkConfig` overrides (e.g. `net.hidden_size=256`) and `opt.NAME=VALUE` physics options
+(e.g. `opt.iterations=10`, `envs_mjx.base.Env.set_options`); the variants run one after another in this process
+(each builds, compiles and trains its own program). A JSON line per epoch: variant, the physics' fingerprint
+(`Env.physics_id`), epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds since the
+process started (`process_seconds`, imports and every earlier variant included) and since the variant started
+(`variant_seconds`, its build and compilation included). `--physics warp` steps the env with MuJoCo Warp
+(envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up, `--until S` once its
 mean eval success has reached S (a time-to-success sweep needs no epochs past its last threshold).
 """
 
@@ -27,42 +28,49 @@ PROCESS_START = time.perf_counter()
 import jax  # noqa: E402 - imported after the process clock starts, so that process_seconds counts it
 import numpy as np  # noqa: E402
 
-from bidal_jax.config import TrainConfig  # noqa: E402
+from bidal_jax.config import NetworkConfig, TrainConfig  # noqa: E402
 from experiments.bench.programs import seeded_program  # noqa: E402
 
 THRESHOLDS = (0.5, 0.8, 0.9)
 
 
-def parse_variant(text: str) -> tuple[dict, dict]:
-    """(TrainConfig overrides, physics options) of a variant: `preset` -> ({}, {}); `a=1,b=2.5,opt.iterations=5`
-    -> ({"a": 1, "b": 2.5}, {"iterations": "5"}), the overrides typed as the fields are; `opt.NAME` entries
-    override the model's physics options (`envs_mjx.base.Env.set_options`)."""
+def parse_variant(text: str) -> tuple[dict, dict, dict]:
+    """(TrainConfig overrides, NetworkConfig overrides, physics options) of a variant: `preset` -> ({}, {}, {});
+    `a=1,b=2.5,net.hidden_size=256,opt.iterations=5` -> ({"a": 1, "b": 2.5}, {"hidden_size": 256},
+    {"iterations": "5"}), the overrides typed as the fields are; `opt.NAME` entries override the model's physics
+    options (`envs_mjx.base.Env.set_options`)."""
+    train, network, options = {}, {}, {}
     if text == "preset":
-        return {}, {}
-    fields = {f.name: f.type for f in dataclasses.fields(TrainConfig)}
-    overrides, options = {}, {}
+        return train, network, options
+    groups = {"": (TrainConfig, train), "net.": (NetworkConfig, network)}
     for item in text.split(","):
         name, _, value = item.partition("=")
         if name.startswith("opt."):
             options[name[4:]] = value  # converted and checked by Env.set_options
             continue
-        if name not in fields:
-            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field nor opt.NAME")
-        kind = {"int": int, "float": float, "str": str}.get(str(fields[name]), float)
-        overrides[name] = kind(value)
-    return overrides, options
+        prefix = "net." if name.startswith("net.") else ""
+        group, into = groups[prefix]
+        fields = {f.name: f.type for f in dataclasses.fields(group)}
+        field = name[len(prefix):]
+        if field not in fields:
+            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field, net.NAME of a "
+                             "NetworkConfig field nor opt.NAME")
+        kind = {"int": int, "float": float, "str": str}.get(str(fields[field]), float)
+        into[field] = kind(value)
+    return train, network, options
 
 
-def train_variant(args, label: str, overrides: dict, options: dict, sink) -> None:
+def train_variant(args, label: str, overrides: dict, network: dict, options: dict, sink) -> None:
     start = time.perf_counter()
-    init, epoch, *_ = seeded_program(args.env, args.agent, args.seeds, backend=args.physics, train=overrides,
-                                     options=options)
+    init, epoch, _, env, *_ = seeded_program(args.env, args.agent, args.seeds, backend=args.physics, train=overrides,
+                                             network=network, options=options)
     state = init(jax.random.split(jax.random.PRNGKey(args.seed), args.seeds))
     for e in range(1, args.epochs + 1):
         state, metrics = epoch(state)
         success = np.asarray(metrics["eval_success"])
         now = time.perf_counter()
-        row = {"variant": label, "overrides": overrides, "options": options, "epoch": e,
+        row = {"variant": label, "overrides": overrides, "network": network, "options": options,
+               "physics": env.physics_id, "epoch": e,
                "eval_success": float(success.mean()),
                "eval_success_seeds": [round(float(s), 4) for s in success],
                "env_steps_per_seed": int(np.asarray(state.env_steps)[0]),
@@ -114,7 +122,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--until", type=float, default=0.0,
                         help="stop a variant once its mean eval success reaches this (0: never)")
     parser.add_argument("--physics", default="jax", choices=["jax", "warp"])
-    parser.add_argument("--variant", action="append", default=None, help="preset, or k=v,k=v TrainConfig overrides")
+    parser.add_argument("--variant", action="append", default=None, help="preset, or k=v,net.k=v,opt.k=v overrides")
     parser.add_argument("--out", help="JSON-lines file, appended to")
     parser.add_argument("--report", nargs="+", help="print the table of these JSON-lines files and exit")
     args = parser.parse_args(argv)
@@ -127,8 +135,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("error: --out is required to train (or give --report FILES)")
     variants = [(text, parse_variant(text)) for text in (args.variant or ["preset"])]
     with open(args.out, "a") as sink:
-        for label, (overrides, options) in variants:
-            train_variant(args, label, overrides, options, sink)
+        for label, (overrides, network, options) in variants:
+            train_variant(args, label, overrides, network, options, sink)
 
 
 if __name__ == "__main__":

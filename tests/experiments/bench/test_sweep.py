@@ -8,12 +8,16 @@ from experiments.bench import sweep
 
 
 def test_variants_are_typed_overrides_and_physics_options():
-    assert sweep.parse_variant("preset") == ({}, {})
-    overrides, options = sweep.parse_variant("updates_per_cycle=320,actor_lr=0.0005,opt.iterations=5")
+    assert sweep.parse_variant("preset") == ({}, {}, {})
+    overrides, network, options = sweep.parse_variant(
+        "updates_per_cycle=320,actor_lr=0.0005,net.hidden_layers=3,opt.iterations=5")
     assert overrides == {"updates_per_cycle": 320, "actor_lr": 0.0005} and type(overrides["updates_per_cycle"]) is int
+    assert network == {"hidden_layers": 3} and type(network["hidden_layers"]) is int
     assert options == {"iterations": "5"}
     with pytest.raises(SystemExit, match="not a TrainConfig field"):
         sweep.parse_variant("updates=3")
+    with pytest.raises(SystemExit, match="net.NAME of a NetworkConfig field"):
+        sweep.parse_variant("net.width=3")
 
 
 def test_report_gives_the_first_epoch_at_each_threshold(tmp_path):
@@ -34,11 +38,14 @@ def test_until_stops_a_variant_at_its_threshold(tmp_path, monkeypatch):
 
     def fake_program(*args, **kwargs):
         state = types.SimpleNamespace(env_steps=np.zeros(2, int), updates=np.zeros(2, int))
-        return lambda keys: state, lambda s: (s, {"eval_success": np.full(2, next(successes))})
+        env = types.SimpleNamespace(physics_id="0123456789abcdef")
+        return lambda keys: state, lambda s: (s, {"eval_success": np.full(2, next(successes))}), None, env
 
     monkeypatch.setattr(sweep, "seeded_program", fake_program)
     out = tmp_path / "cell.jsonl"
     sweep.main(["--env", "planar_reach", "--seeds", "2", "--epochs", "4", "--until", "0.9", "--out", str(out)])
-    assert [json.loads(line)["epoch"] for line in out.read_text().splitlines()] == [1, 2, 3]
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [row["epoch"] for row in rows] == [1, 2, 3]
+    assert {row["physics"] for row in rows} == {"0123456789abcdef"}
     with pytest.raises(SystemExit, match=r"--until 1.5: a success rate in \[0, 1\]"):
         sweep.main(["--until", "1.5", "--out", str(out)])
