@@ -75,6 +75,9 @@ def run_parser() -> argparse.ArgumentParser:
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --run-dir from its latest checkpoint, with its saved config "
                         "(only --epochs may change)")
+    parser.add_argument("--fresh-buffer", action="store_true",
+                        help="with --resume: restore all but the replay buffer, which starts empty (a checkpoint "
+                        "carried without its buffer item); recorded in config.json's fresh_buffer_epochs")
     parser.add_argument("--overwrite", action="store_true",
                         help="delete a non-empty --run-dir first (after every check passed)")
     parser.add_argument("--print-config", action="store_true",
@@ -96,21 +99,22 @@ def parse_names(text: str, flag: str, kind: str, allowed: Sequence[str]) -> tupl
 
 def start_run(
     given: dict[str, Any], *, resume: bool = False, overwrite: bool = False, quiet: bool = False, env: Any = None,
-    initialize: Callable[[Any], Any] | None = None,
+    initialize: Callable[[Any], Any] | None = None, fresh_buffer: bool = False,
 ) -> tuple[Config, dict[str, float]]:
     """Prepare the run `given` asks for (every check, nothing written), delete its directory with
     `overwrite`, then train it: (its config, its last metrics row). `env` defaults to one made for
-    the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for.
-    Raises what `FAILURES` names."""
+    the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for;
+    `fresh_buffer` resumes with an empty replay buffer. Raises what `FAILURES` names."""
     config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
-                               overwrite=overwrite)
+                               overwrite=overwrite, fresh_buffer=fresh_buffer)
     if overwrite:
         preflight.delete_run_dir(config.run.run_dir)
     if env is None:
         env = envs_mjx.make(config.run.env, render=config.agent.uses_image)
     if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
         initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)
-    return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize)
+    return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize,
+                              fresh_buffer=fresh_buffer)
 
 
 def print_summary(run: RunConfig, row: dict[str, float]) -> None:

@@ -10,7 +10,9 @@ loop and its outputs in `bidal_jax.run.loop`, the options and the start of a run
 
 - `--resume` continues the run in `--run-dir` from its latest checkpoint with the
   checkpoint's config; only `--epochs` (not below the checkpoint's epoch), `--run-dir`
-  and `--quiet` may be given with other values.
+  and `--quiet` may be given with other values. `--resume --fresh-buffer` restores all but the
+  replay buffer, which starts empty (a checkpoint carried without its `buffer` item; a deviation
+  from the uninterrupted run, recorded in config.json's `fresh_buffer_epochs`).
 - Ctrl-C (SIGINT) or SIGTERM lets the epoch in flight finish, saves a checkpoint and
   exits; a second signal exits at once.
 - A non-empty run directory is only continued (`--resume`) or deleted first
@@ -52,7 +54,8 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(config.to_dict(), indent=2))
             return 0
         loop.enable_compilation_cache()
-        config, row = cli.start_run(given, resume=args.resume, overwrite=args.overwrite, quiet=args.quiet)
+        config, row = cli.start_run(given, resume=args.resume, overwrite=args.overwrite, quiet=args.quiet,
+                                    fresh_buffer=args.fresh_buffer)
     except cli.FAILURES as err:
         return cli.exit_code(err, "continue with --resume --run-dir {run_dir}")
     cli.print_summary(config.run, row)

@@ -20,6 +20,8 @@ message says which checkpoint and what is wrong with it.
 `restore_partial` reads only named leaves (e.g. the acting parameters and normalisers)
 with Orbax partial restore, checked against the digest like a full restore. Readers open only the
 items they need, each with its own handler (no warning about the manager's `metrics` item).
+A checkpoint carried without its `buffer` item restores only with another buffer given in its
+place (`restore(..., buffer=...)`: a run resumed with `--fresh-buffer`).
 """
 
 from __future__ import annotations
@@ -230,29 +232,27 @@ def _check_structure(saved: Any, target: Any, where: str, partial: bool = False)
             )
 
 
-def restore(directory: str, abstract_state: Any, step: int | None = None, env_shards: int = 1) -> tuple[Any, dict, int]:
+def restore(
+    directory: str, abstract_state: Any, step: int | None = None, env_shards: int = 1, buffer: Any = None
+) -> tuple[Any, dict, int]:
     """Restore (state, config, step) shaped like `abstract_state` (latest step by default); reads only.
 
     Checks the saved leaves' names, shapes and dtypes against `abstract_state` before
     reading any array, and the restored bytes against the saved digest afterwards. A buffer
     saved by another number of env shards is laid out for `env_shards` (`replay.relayout`).
+    With `buffer` (e.g. an empty one), the state holds it instead of the saved buffer, whose
+    item is neither read nor needed.
     """
     path, step = _step_dir(directory, step)
     where = f"checkpoint {step} in {directory}"
-    fields, buffer = _split(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
-    saved = _metadata(path, where)
-    _check_structure(saved, {"state": fields, "buffer": buffer}, where)
-    restored = _restore_checked(
-        path,
-        where,
-        {
-            "state": ocp.args.StandardRestore(fields),
-            "buffer": ocp.args.StandardRestore(buffer),
-            "config": ocp.args.JsonRestore(),
-        },
-    )
-    saved_shards = (restored["digest"] or {}).get("env_shards", 1)  # checkpoints before env shards: 1
-    buffer = replay.relayout(restored["buffer"], saved_shards, env_shards, axis=1)  # after the seed axis
+    fields, saved_buffer = _split(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
+    targets = {"state": fields} if buffer is not None else {"state": fields, "buffer": saved_buffer}
+    _check_structure(_metadata(path, where, tuple(targets)), targets, where)
+    args = {name: ocp.args.StandardRestore(target) for name, target in targets.items()}
+    restored = _restore_checked(path, where, {**args, "config": ocp.args.JsonRestore()})
+    if buffer is None:
+        saved_shards = (restored["digest"] or {}).get("env_shards", 1)  # checkpoints before env shards: 1
+        buffer = replay.relayout(restored["buffer"], saved_shards, env_shards, axis=1)  # after the seed axis
     return type(abstract_state)(**restored["state"], buffer=buffer), restored["config"], step
 
 
@@ -263,7 +263,11 @@ def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> di
     for name in names:
         item = os.path.join(path, name)
         if not os.path.isdir(item):
-            raise CheckpointError(f"{where} is damaged: it has no {name}")
+            raise CheckpointError(
+                f"{where} has no replay buffer (its buffer item was left out or deleted); "
+                "--resume --fresh-buffer continues the run with an empty replay buffer"
+                if name == "buffer" else f"{where} is damaged: it has no {name}"
+            )
         try:
             saved[name] = dict(handlers[name].metadata(epath.Path(item)))
         except Exception as err:

@@ -7,9 +7,10 @@
 (metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
 `checkpoint`), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
 non-finite metric or parameter stops the run without saving it; `guard`), holding the run
-directory's lock (`rundir`) throughout. Errors are exceptions whose message is one line:
-`CheckpointError` (bad input, nothing written), `Diverged`, `Interrupted` (a checkpoint was
-saved), `rundir.DiskError` (a write failed for want of disk).
+directory's lock (`rundir`) throughout. A run resumed with `fresh_buffer` restores all but the
+replay buffer, which starts empty; config.json's "fresh_buffer_epochs" records after which epochs.
+Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
+`Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk).
 """
 
 from __future__ import annotations
@@ -61,15 +62,23 @@ def restore_state(env, config: Config, step: int | None = None):
     return _restore(config.run.run_dir, _programs(env, config), step)
 
 
-def _restore(run_dir: str, programs: Programs, step: int | None = None):
+def _restore(run_dir: str, programs: Programs, step: int | None = None, fresh_buffer: bool = False):
+    """(state, epoch) of a checkpoint, placed like the program's; with `fresh_buffer`, the buffer is the empty one
+    of the program's `init` (its seeds' and env shards' layout) and the checkpoint's is not read."""
     abstract = jax.eval_shape(programs.init, programs.keys)
-    state, _, step = checkpoint.restore(os.path.join(run_dir, "checkpoints"), abstract, step, programs.shards)
+    empty = programs.init(programs.keys).buffer if fresh_buffer else None
+    state, _, step = checkpoint.restore(
+        os.path.join(run_dir, "checkpoints"), abstract, step, programs.shards, buffer=empty
+    )
     return jax.device_put(state, programs.sharding), step
 
 
-def build(env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None):
-    """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's;
-    writes nothing.
+def build(
+    env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None,
+    fresh_buffer: bool = False,
+):
+    """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's
+    (with `fresh_buffer`, all of it but the replay buffer, which starts empty); writes nothing.
 
     `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
     from another run for transfer); a resumed run continues its checkpoint as it is.
@@ -83,7 +92,9 @@ def build(env, config: Config, resume: bool, log: Callable = _log, initialize: C
         f"{len(programs.devices)} device(s){shards}) ..."
     )
     if resume:
-        state, step = _restore(run.run_dir, programs)
+        state, step = _restore(run.run_dir, programs, fresh_buffer=fresh_buffer)
+        if fresh_buffer:
+            log(f"resuming epoch {step} with an empty replay buffer (--fresh-buffer: the checkpoint's is not restored)")
     else:
         state, step = programs.init(programs.keys), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
@@ -94,9 +105,11 @@ def build(env, config: Config, resume: bool, log: Callable = _log, initialize: C
 
 
 def train(
-    env, config: Config, *, quiet: bool = False, resume: bool = False, initialize: Callable | None = None
+    env, config: Config, *, quiet: bool = False, resume: bool = False, initialize: Callable | None = None,
+    fresh_buffer: bool = False,
 ) -> dict[str, float]:
-    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`); returns
+    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`; with
+    `fresh_buffer` too, an empty replay buffer instead of the checkpoint's); returns
     the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
     edits a new run's initial state (see `build`).
 
@@ -115,23 +128,36 @@ def train(
     if main:
         rundir.hold(run_dir)
     try:
-        return _train(env, config, quiet, resume, initialize, begun)
+        return _train(env, config, quiet, resume, initialize, begun, fresh_buffer)
     finally:
         if main:
             rundir.release(run_dir)
 
 
-def physics_record(run_dir: str, physics_id: str, resume: bool) -> list[str]:
-    """config.json's "physics": the fingerprints (`Env.physics_id`) of the physics the run has trained on, in order:
-    a resumed run keeps its earlier ones and adds today's if it differs (a run resumed after a model change)."""
-    earlier = []
+def _recorded(run_dir: str, key: str, resume: bool) -> list:
+    """The list `key` of a resumed run's config.json (empty for a new run, or a missing or damaged copy:
+    what came before is unknown)."""
     if resume:
         try:
             with open(os.path.join(run_dir, "config.json")) as f:
-                earlier = list(json.load(f).get("physics", []))
+                return list(json.load(f).get(key, []))
         except (OSError, ValueError, TypeError):
-            pass  # a missing or damaged copy: what came before is unknown
+            pass
+    return []
+
+
+def physics_record(run_dir: str, physics_id: str, resume: bool) -> list[str]:
+    """config.json's "physics": the fingerprints (`Env.physics_id`) of the physics the run has trained on, in order:
+    a resumed run keeps its earlier ones and adds today's if it differs (a run resumed after a model change)."""
+    earlier = _recorded(run_dir, "physics", resume)
     return earlier if earlier[-1:] == [physics_id] else [*earlier, physics_id]
+
+
+def fresh_buffer_record(run_dir: str, epoch: int, resume: bool, fresh_buffer: bool) -> list[int]:
+    """config.json's "fresh_buffer_epochs": the epochs after which a resume started with an empty replay
+    buffer (`--fresh-buffer`), in order: a resumed run keeps its earlier ones and adds `epoch` with `fresh_buffer`."""
+    earlier = _recorded(run_dir, "fresh_buffer_epochs", resume)
+    return [*earlier, epoch] if fresh_buffer else earlier
 
 
 def _last_good(saved: int | None, ckpt_dir: str) -> str:
@@ -139,15 +165,19 @@ def _last_good(saved: int | None, ckpt_dir: str) -> str:
 
 
 def _train(
-    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float
+    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float, fresh_buffer: bool
 ) -> dict[str, float]:
     """`train`'s loop, the lock held; `begun`: when `train` was called."""
     run = config.run
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
-        epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize)
-        cfg = {**config.to_dict(), "physics": physics_record(run.run_dir, env.physics_id, resume)}
+        epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize, fresh_buffer=fresh_buffer)
+        cfg = {
+            **config.to_dict(),
+            "physics": physics_record(run.run_dir, env.physics_id, resume),
+            "fresh_buffer_epochs": fresh_buffer_record(run.run_dir, start_epoch, resume, fresh_buffer),
+        }
         saved = start_epoch if resume else None
         with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             if main:

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
 from bidal_jax.run import multihost, rundir, transfer, validate
-from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config
+from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, read_metadata
 from bidal_jax.run.devices import device_layout
 from bidal_jax.train import make_train
 
@@ -147,9 +147,11 @@ def prepare(
     make_env: Callable[..., Any],
     resume: bool = False,
     overwrite: bool = False,
+    fresh_buffer: bool = False,
 ) -> Config:
     """The config of the run that `given` (field -> value, e.g. a command line) asks for, after
-    every check; compiles and writes nothing. Raises ConfigError or CheckpointError.
+    every check; compiles and writes nothing. Raises ConfigError or CheckpointError (a resumed
+    run's checkpoint without its replay buffer, unless `fresh_buffer` starts an empty one).
 
     With several processes, each checks (the same files: the same outcome) and they wait for
     each other at the end, so that no process writes before every one has checked."""
@@ -157,6 +159,8 @@ def prepare(
         raise ConfigError("--resume and --overwrite exclude each other: continue the run or delete it")
     if resume and not given.get("run_dir"):
         raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
+    if fresh_buffer and not resume:
+        raise ConfigError("--fresh-buffer needs --resume: it starts a resumed run's replay buffer empty")
     env_names = tuple(env_names)
     if given.get("run_dir"):  # a directory in use is refused before any other check names it
         _main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
@@ -165,6 +169,8 @@ def prepare(
     if resume:
         config = resumed_config(given["run_dir"], given)
         validate.check(config, env_names=env_names)  # the checkpoint's
+        if not fresh_buffer:  # its buffer's metadata: a CheckpointError saying so when the item is missing
+            read_metadata(os.path.join(config.run.run_dir, "checkpoints"), names=("buffer",))
     else:
         run = config.run
         if not run.run_dir:
