@@ -23,7 +23,7 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 (with `--tasks nicol_lift` only that task trains).
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
-run dir, new/resume/done) and its estimated time on one H200 running the runs one after another
+run dir, new/resume/done) and its estimated time on one H100 running the runs one after another
 (`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
 (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
 whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
@@ -62,16 +62,21 @@ from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per t
 PROG = "python -m experiments.paper.curves"
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
-# one H200, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline)
-# - NICOL, image agent: about 5 s/epoch (two such programs sharing the GPU: 10.5-11.5 s/epoch each;
-#   two per GPU beside small runs on a 4-GPU machine: ~14 s/epoch each), compile 140-220 s;
-# - NICOL, proprio_baseline: assumed 2 s/epoch, compile 90 s (a measured 15-seed proprio noise
-#   program: 135 s for 19 epochs, of which 90 s compile);
+# one H100, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline), from
+# docs/results.md (sessions 10 and 11; compile = the process's time to the end of its first epoch, less one epoch):
+# - nicol_slide (512 envs × 5 cycles, 320 updates per cycle): multimodal_bidal 17.8 s/epoch, first epoch at 218 s;
+#   proprio_baseline assumed 9 s/epoch and 120 s (unmeasured at this preset);
+# - nicol_lift (2,048 envs × 2 cycles, 3,200 updates per cycle): multimodal_bidal 41.5 s/epoch, first epoch at
+#   261 s; proprio_baseline 10.9 s/epoch, first epoch at 146 s;
 # - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
 #   with compilation); 6 s/epoch and 60 s compile assumed for 5 seeds, either kind.
 _REACH = {"image": (6.0, 60.0), "proprio": (6.0, 60.0)}
-_NICOL = {"image": (5.0, 180.0), "proprio": (2.0, 90.0)}
-SECONDS = {"planar_reach": _REACH, "ur5_reach": _REACH, "nicol_slide": _NICOL, "nicol_lift": _NICOL}
+SECONDS = {
+    "planar_reach": _REACH,
+    "ur5_reach": _REACH,
+    "nicol_slide": {"image": (17.8, 200.0), "proprio": (9.0, 120.0)},
+    "nicol_lift": {"image": (41.5, 220.0), "proprio": (10.9, 135.0)},
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -155,7 +160,7 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     lines = [f"plan: {len(arms)} runs"]
     lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
     lines.append(
-        f"estimated time: {duration(sum(seconds))} on one H200 running the runs one after another "
+        f"estimated time: {duration(sum(seconds))} on one H100 running the runs one after another "
         "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
     )
     return "\n".join(lines)

@@ -57,15 +57,15 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
                 and f"{out}/{task}/{agent} [new]" in printed
             )
     assert (
-        f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 128,000 = 12,800,000 env steps "
-        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 680 s"
+        f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 4,370 s"
     ) in lines
     assert (
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
     ) in lines
-    # 5 × 300 + 5 × 240 + 2 × (4 × 680 + 290)
-    assert "estimated time: 8,720 s (2.4 h) on one H200 running the runs one after another" in printed
+    # 5 × 300 + 5 × 240 + (4 × 1,980 + 1,020) + (4 × 4,370 + 1,225)
+    assert "estimated time: 30,345 s (8.4 h) on one H100 running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 

@@ -35,7 +35,7 @@ def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_n
         f"transfer: nicol_lift_reduced multimodal_bidal, 2 seed(s), exploration starts 0, parameters from {out}/source"
         in printed
     )
-    assert "3 epochs × 128,000 = 384,000 env steps per seed" in printed and "[done]" in printed
+    assert "3 epochs × 204,800 = 614,400 env steps per seed" in printed and "[done]" in printed
     table = (out / "table.md").read_text()
     # transfer: means 0.3, 0.5, 0.7 -> 0.3 at epoch 1 (100 steps, 10 s + 50 s compile), 0.5 at epoch 2; AUC 0.5;
     # last 2: seeds 0.5, 0.7
