@@ -215,44 +215,29 @@ def fields_help(cls: type) -> dict[str, str]:
     return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(cls)}
 
 
+def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> dict[str, dict[str, Any]]:
+    """A NICOL task's preset, sized for one GPU: 100 epochs of `cycles_per_epoch` cycles of `num_envs` envs and
+    `updates_per_cycle` gradient updates of batch 2,048, a buffer of 16,384 episodes, 128 evaluation episodes."""
+    train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
+             "batch_size": 2048, "buffer_episodes": 16384, "eval_envs": 128}
+    return {"run": {"epochs": 100}, "train": train}
+
+
 # Per-env overrides of the defaults above (then the command line overrides these).
 # Keys: "run", "train", "network"; values: field -> value.
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 40}},
     "ur5_reach": {"run": {"epochs": 15}},
     # the NICOL tasks are sized for one GPU (docs/results.md): many parallel envs, big batches and many
-    # gradient updates, which cost little beside the physics there. The same for every agent of a task (equal
-    # budgets). nicol_slide: 512 envs × 5 cycles, 320 updates per cycle (one per 80 env steps): multimodal_bidal
-    # (5 seeds) reached 0.9 in 7 epochs, where 80 per cycle left it at 0.62 after 100 (session 9).
-    "nicol_slide": {
-        "run": {"epochs": 100},
-        "train": {
-            "num_envs": 512,
-            "cycles_per_epoch": 5,
-            "updates_per_cycle": 320,
-            "batch_size": 2048,
-            "buffer_episodes": 16384,
-            "eval_envs": 128,
-        },
-    },
-    # nicol_lift and its reduced variant (the transfer target): 2,048 envs × 2 cycles, 3,200 updates per cycle
-    # (6,400 an epoch, one per 32 env steps): proprio_baseline (5 seeds) reached the level that sliding alone
-    # can score (0.125) by epoch 21-33 instead of 53, and one seed of five went past it (0.625 at epoch 54), where
-    # 1,600 updates an epoch stayed at 0.11-0.13 for 84 epochs (docs/results.md, session 11)
-    **{
-        name: {
-            "run": {"epochs": 100},
-            "train": {
-                "num_envs": 2048,
-                "cycles_per_epoch": 2,
-                "updates_per_cycle": 3200,
-                "batch_size": 2048,
-                "buffer_episodes": 16384,
-                "eval_envs": 128,
-            },
-        }
-        for name in ("nicol_lift", "nicol_lift_reduced")
-    },
+    # gradient updates, which cost little beside the physics there; the same for every agent of a task (equal
+    # budgets). nicol_slide: 320 updates per cycle (one per 80 env steps): multimodal_bidal (5 seeds) reached 0.9
+    # in 7 epochs, where 80 per cycle left it at 0.62 after 100 (session 9).
+    "nicol_slide": gpu_preset(512, 5, 320),
+    # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps):
+    # proprio_baseline (5 seeds) reached what sliding alone can score (0.125) by epoch 21 instead of 53, and one
+    # seed of five went past it (0.625 at epoch 54), where 1,600 updates an epoch stayed at 0.11-0.13 for 84 epochs
+    # (docs/results.md, session 11)
+    **{name: gpu_preset(2048, 2, 3200) for name in ("nicol_lift", "nicol_lift_reduced")},
 }
 # Per-agent overrides of the env presets, for agents that learn from images.
 IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
