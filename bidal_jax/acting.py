@@ -2,7 +2,8 @@
 for everything that steps environments, and evaluation.
 
 - `make_policy(networks, config, params, explore=False)`: the DDPG actor μ(ψ(s), η(g))
-  (paper Eq. 7) on normalised inputs; exploring adds Gaussian noise and ε-random actions.
+  (paper Eq. 7) on normalised inputs; exploring adds Gaussian noise and ε-random actions
+  (`exploring`, HER's exploration).
 - `rollout(env, policy, key, n_envs)`: `n_envs` vmapped envs stepped by `policy` for one
   episode (or `steps`) inside one `lax.scan`. Training, evaluation, the benchmark, the
   scripted NICOL controller and the tests all step envs through it.
@@ -22,6 +23,7 @@ from __future__ import annotations
 import functools
 from typing import Any, Callable, NamedTuple
 
+import chex
 import jax
 import jax.numpy as jnp
 from flax import struct
@@ -83,15 +85,20 @@ def make_policy(networks: Networks, config: Config, params: ActingParams, explor
         goal = normalizer.normalize(params.goal_norm, obs["desired_goal"], train.clip_obs)
         phi = networks.encode(params.params.get("encoder"), image, proprio)
         action = networks.actor(params.params["actor"], phi, goal)
-        if not explore:
-            return action
-        key_noise, key_random, key_pick = jax.random.split(x, 3)
-        action = jnp.clip(action + train.noise_eps * jax.random.normal(key_noise, action.shape), -1.0, 1.0)
-        random_action = jax.random.uniform(key_random, action.shape, minval=-1.0, maxval=1.0)
-        pick = jax.random.uniform(key_pick, (action.shape[0], 1)) < train.random_eps
-        return jnp.where(pick, random_action, action)
+        return exploring(action, x, train.noise_eps, train.random_eps) if explore else action
 
     return act
+
+
+def exploring(action: jax.Array, key: jax.Array, noise_eps: float, random_eps: float) -> jax.Array:
+    """HER's exploration around actions [N, A]: Gaussian noise of std `noise_eps` (then clipped to [-1, 1]),
+    and each row replaced by a uniform random action with probability `random_eps`."""
+    chex.assert_rank(action, 2)
+    key_noise, key_random, key_pick = jax.random.split(key, 3)
+    action = jnp.clip(action + noise_eps * jax.random.normal(key_noise, action.shape), -1.0, 1.0)
+    random_action = jax.random.uniform(key_random, action.shape, minval=-1.0, maxval=1.0)
+    pick = jax.random.uniform(key_pick, (action.shape[0], 1)) < random_eps
+    return jnp.where(pick, random_action, action)
 
 
 def random_policy(action_size: int, scale: float = 1.0) -> Policy:

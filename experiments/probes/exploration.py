@@ -1,0 +1,91 @@
+"""How often the trainer's exploration lifts the NICOL cube, before any learning: the raw material HER
+has for learning to lift (docs/results.md, session 11).
+
+The mean action is `zero` (an untrained policy) or `hover` (the hand driven to `GRASP_HEIGHT` above the
+cube, as a policy that has learned to slide keeps it near the cube; fingers and thumb at 0); the trainer's
+exploration (`bidal_jax.acting.exploring`, HER's: Gaussian noise of std `--noise-eps`, a uniform random
+action with probability `--random-eps`) is added to it. Printed: the share of episodes in which the cube's
+centre rose at least 1, 2.5, 5 and 10 cm above its resting height, the mean number of steps it spent 5 cm up,
+and the share that ended 5 cm up.
+
+    python -m experiments.probes.exploration --mean hover --episodes 256
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from bidal_jax.acting import Policy, exploring, rollout
+from bidal_jax.config import TrainConfig
+from envs_mjx.base import ObservationSpec
+from envs_mjx.nicol import CUBE_HALF, TABLE_HEIGHT, NicolLift
+from experiments.probes.grasping import GRASP_HEIGHT, _move, _segment
+
+RISES = (0.01, 0.025, 0.05, 0.10)  # m above the cube's resting centre
+HELD_UP = 0.05  # m: "5 cm up"
+MEANS = ("zero", "hover")
+
+
+def mean_policy(kind: str, spec: ObservationSpec, action_size: int) -> Policy:
+    """The mean action of the exploration: zeros, or the grasp point driven to `GRASP_HEIGHT` above the cube."""
+    if kind == "zero":
+        return lambda obs, key: jnp.zeros((obs["proprio"].shape[0], action_size))
+
+    def hover(obs: dict) -> jax.Array:
+        ee, obj = _segment(obs, spec, "ee_pos"), _segment(obs, spec, "obj_pos")
+        move = _move(ee, obj + jnp.array([0.0, 0.0, GRASP_HEIGHT]))
+        return jnp.concatenate([move, jnp.zeros(action_size - 3)])
+
+    return lambda obs, key: jax.vmap(hover)(obs)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1, 3, 4, 5))
+def cube_rises(env: NicolLift, kind: str, key: jax.Array, episodes: int, noise_eps: float, random_eps: float):
+    """The cube centre's height above its resting height after each step, [steps, episodes] (m), of `episodes`
+    episodes of the `kind` mean action with the trainer's exploration."""
+    spec = env.observation_spec
+    mean = mean_policy(kind, spec, env.action_size)
+
+    def policy(obs: dict, key: jax.Array) -> jax.Array:
+        key_mean, key_explore = jax.random.split(key)
+        return exploring(mean(obs, key_mean), key_explore, noise_eps, random_eps)
+
+    height = spec.segment_slice("obj_pos").start + 2
+    _, heights = rollout(env, policy, key, episodes, record=lambda step: step.next_state.obs["proprio"][:, height])
+    return heights - (TABLE_HEIGHT + CUBE_HALF)
+
+
+def summarize(rise: jax.Array) -> dict[str, float]:
+    """Shares of episodes (columns of `rise` [steps, episodes]) whose cube rose at least each of `RISES`, the mean
+    number of steps spent `HELD_UP` up, and the share that ended that high."""
+    top = rise.max(axis=0)
+    shares = {f"rose >= {100 * r:g} cm": float((top >= r).mean()) for r in RISES}
+    return {**shares, "steps >= 5 cm (mean)": float((rise >= HELD_UP).sum(axis=0).mean()),
+            "ended >= 5 cm": float((rise[-1] >= HELD_UP).mean())}
+
+
+def main(argv: list[str] | None = None) -> None:
+    defaults = TrainConfig()
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--mean", choices=MEANS, default="hover", help="the exploration's mean action")
+    parser.add_argument("--episodes", type=int, default=256)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--noise-eps", type=float, default=defaults.noise_eps)
+    parser.add_argument("--random-eps", type=float, default=defaults.random_eps)
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be a positive integer, got {args.episodes}")
+    if args.noise_eps < 0 or not 0 <= args.random_eps <= 1:
+        parser.error("--noise-eps must be >= 0 and --random-eps a probability in [0, 1]")
+    rise = cube_rises(NicolLift(render=False), args.mean, jax.random.PRNGKey(args.seed), args.episodes,
+                      args.noise_eps, args.random_eps)
+    figures = "; ".join(f"{name} {value:.3f}" for name, value in summarize(rise).items())
+    print(f"nicol_lift, mean {args.mean}, {args.episodes} episodes: {figures}")
+
+
+if __name__ == "__main__":
+    main()
