@@ -64,8 +64,9 @@ def summarize(rise: jax.Array) -> dict[str, float]:
     number of steps spent `HELD_UP` up, and the share that ended that high."""
     top = rise.max(axis=0)
     shares = {f"rose >= {100 * r:g} cm": float((top >= r).mean()) for r in RISES}
-    return {**shares, "steps >= 5 cm (mean)": float((rise >= HELD_UP).sum(axis=0).mean()),
-            "ended >= 5 cm": float((rise[-1] >= HELD_UP).mean())}
+    up = f"{100 * HELD_UP:g} cm"
+    return {**shares, f"steps >= {up} (mean)": float((rise >= HELD_UP).sum(axis=0).mean()),
+            f"ended >= {up}": float((rise[-1] >= HELD_UP).mean())}
 
 
 def main(argv: list[str] | None = None) -> None:
