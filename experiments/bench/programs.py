@@ -14,7 +14,8 @@ from typing import Any, Callable, NamedTuple
 import jax
 
 import envs_mjx
-from bidal_jax.config import TrainConfig, resolve
+from bidal_jax.config import Config, TrainConfig, resolve
+from bidal_jax.run import validate
 from bidal_jax.run.devices import device_layout, make_seeded
 from bidal_jax.train import make_train
 
@@ -40,6 +41,16 @@ def make_env(name: str, backend: str, worlds: int, render: bool, options: dict |
     return env
 
 
+def program_config(name: str, agent: str, train: dict | None = None, network: dict | None = None) -> Config:
+    """The preset config of `agent` on the env `name` with the `TrainConfig` overrides `train` and `NetworkConfig`
+    overrides `network`, checked as a run checks its config (`validate.check`: ConfigError, one line)."""
+    preset = resolve({"env": name, "agent": agent})
+    config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})),
+                                 network=dataclasses.replace(preset.network, **(network or {})))
+    validate.check(config, env_names=envs_mjx.names())
+    return config
+
+
 def seeded_program(
     name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1, backend: str = "jax",
     train: dict | None = None, options: dict | None = None, network: dict | None = None,
@@ -48,9 +59,7 @@ def seeded_program(
     `TrainConfig` overrides `train` and `NetworkConfig` overrides `network`) on the first `n_devices` devices,
     laid out as a run lays them out (`devices.device_layout`), its env's physics on `backend` with the physics
     `options`."""
-    preset = resolve({"env": name, "agent": agent})
-    config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})),
-                                 network=dataclasses.replace(preset.network, **(network or {})))
+    config = program_config(name, agent, train, network)
     worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
     env = make_env(name, backend, worlds, render=config.agent.uses_image, options=options)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])

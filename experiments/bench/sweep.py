@@ -28,8 +28,8 @@ PROCESS_START = time.perf_counter()
 import jax  # noqa: E402 - imported after the process clock starts, so that process_seconds counts it
 import numpy as np  # noqa: E402
 
-from bidal_jax.config import NetworkConfig, TrainConfig  # noqa: E402
-from experiments.bench.programs import seeded_program  # noqa: E402
+from bidal_jax.config import ConfigError, NetworkConfig, TrainConfig  # noqa: E402
+from experiments.bench.programs import program_config, seeded_program  # noqa: E402
 
 THRESHOLDS = (0.5, 0.8, 0.9)
 
@@ -134,6 +134,11 @@ def main(argv: list[str] | None = None) -> None:
     if not args.out:
         raise SystemExit("error: --out is required to train (or give --report FILES)")
     variants = [(text, parse_variant(text)) for text in (args.variant or ["preset"])]
+    for text, (overrides, network, _) in variants:  # every variant's config, before the first one trains
+        try:
+            program_config(args.env, args.agent, overrides, network)
+        except ConfigError as err:
+            raise SystemExit(f"error: --variant {text}: {err}") from None
     with open(args.out, "a") as sink:
         for label, (overrides, network, options) in variants:
             train_variant(args, label, overrides, network, options, sink)

@@ -49,3 +49,13 @@ def test_until_stops_a_variant_at_its_threshold(tmp_path, monkeypatch):
     assert {row["physics"] for row in rows} == {"0123456789abcdef"}
     with pytest.raises(SystemExit, match=r"--until 1.5: a success rate in \[0, 1\]"):
         sweep.main(["--until", "1.5", "--out", str(out)])
+
+
+def test_a_variant_the_run_would_refuse_stops_the_sweep_before_any_trains(tmp_path, monkeypatch):
+    monkeypatch.setattr(sweep, "seeded_program", lambda *a, **k: pytest.fail("a variant trained"))
+    out = tmp_path / "cell.jsonl"
+    with pytest.raises(SystemExit, match=r"error: --variant num_envs=2560,cycles_per_epoch=1: --buffer-episodes 16384: "
+                                         r"must be a multiple of --num-envs 2560"):
+        sweep.main(["--env", "nicol_slide", "--variant", "preset", "--variant", "num_envs=2560,cycles_per_epoch=1",
+                    "--out", str(out)])
+    assert not out.exists()
