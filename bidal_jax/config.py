@@ -217,9 +217,10 @@ def fields_help(cls: type) -> dict[str, str]:
 
 def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> dict[str, dict[str, Any]]:
     """A NICOL task's preset, sized for one GPU: 100 epochs of `cycles_per_epoch` cycles of `num_envs` envs and
-    `updates_per_cycle` gradient updates of batch 2,048, a buffer of 16,384 episodes, 128 evaluation episodes."""
+    `updates_per_cycle` gradient updates of batch 2,048, a buffer of the most whole rollouts of `num_envs` episodes
+    that fit in 16,384 episodes, 128 evaluation episodes."""
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
-             "batch_size": 2048, "buffer_episodes": 16384, "eval_envs": 128}
+             "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
     return {"run": {"epochs": 100}, "train": train}
 
 
@@ -230,9 +231,11 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "ur5_reach": {"run": {"epochs": 15}},
     # the NICOL tasks are sized for one GPU (docs/results.md): many parallel envs, big batches and many
     # gradient updates, which cost little beside the physics there; the same for every agent of a task (equal
-    # budgets). nicol_slide: 320 updates per cycle (one per 80 env steps): multimodal_bidal (5 seeds) reached 0.9
-    # in 7 epochs, where 80 per cycle left it at 0.62 after 100 (session 9).
-    "nicol_slide": gpu_preset(512, 5, 320),
+    # budgets). nicol_slide: one cycle of 2,560 envs and 1,600 updates an epoch (128,000 env steps, one update per
+    # 80): multimodal_bidal (5 seeds, one H100 alone) reached 0.9 at 338 s from a cold start, 14.3 s an epoch, where
+    # 512 envs × 5 cycles (the same env steps and updates) took 323 s at 17.8 s an epoch; 80 updates per cycle left
+    # it at 0.62 after 100 epochs (sessions 9, 10, 13)
+    "nicol_slide": gpu_preset(2560, 1, 1600),
     # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps):
     # proprio_baseline (5 seeds) reached what sliding alone can score (0.125) by epoch 21 instead of 53, and one
     # seed of five went past it (0.625 at epoch 54), where 1,600 updates an epoch stayed at 0.11-0.13 for 84 epochs

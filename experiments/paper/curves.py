@@ -63,19 +63,19 @@ PROG = "python -m experiments.paper.curves"
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
 # one H100, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline), from
-# docs/results.md (sessions 10 and 11; compile = the process's time to the end of its first epoch, less one epoch):
-# - nicol_slide (512 envs × 5 cycles, 320 updates per cycle): multimodal_bidal 17.8 s/epoch, first epoch at 218 s;
-#   proprio_baseline assumed 9 s/epoch and 120 s (unmeasured at this preset);
+# docs/results.md (sessions 11-13; compile = the process's time to the end of its first epoch, less one epoch):
+# - nicol_slide (2,560 envs × 1 cycle, 1,600 updates per cycle): multimodal_bidal 14.3 s/epoch, first epoch at
+#   212 s; proprio_baseline assumed 9 s/epoch and 120 s (unmeasured alone at this preset);
 # - nicol_lift (2,048 envs × 2 cycles, 3,200 updates per cycle): multimodal_bidal 41.5 s/epoch, first epoch at
-#   261 s; proprio_baseline 10.9 s/epoch, first epoch at 146 s;
+#   261 s; proprio_baseline 11.2 s/epoch, first epoch at 158 s (100 epochs: 1,382 s);
 # - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
 #   with compilation); 6 s/epoch and 60 s compile assumed for 5 seeds, either kind.
 _REACH = {"image": (6.0, 60.0), "proprio": (6.0, 60.0)}
 SECONDS = {
     "planar_reach": _REACH,
     "ur5_reach": _REACH,
-    "nicol_slide": {"image": (17.8, 200.0), "proprio": (9.0, 120.0)},
-    "nicol_lift": {"image": (41.5, 220.0), "proprio": (10.9, 135.0)},
+    "nicol_slide": {"image": (14.3, 198.0), "proprio": (9.0, 120.0)},
+    "nicol_lift": {"image": (41.5, 220.0), "proprio": (11.2, 148.0)},
 }
 
 

@@ -54,8 +54,8 @@ def test_until_stops_a_variant_at_its_threshold(tmp_path, monkeypatch):
 def test_a_variant_the_run_would_refuse_stops_the_sweep_before_any_trains(tmp_path, monkeypatch):
     monkeypatch.setattr(sweep, "seeded_program", lambda *a, **k: pytest.fail("a variant trained"))
     out = tmp_path / "cell.jsonl"
-    with pytest.raises(SystemExit, match=r"error: --variant num_envs=2560,cycles_per_epoch=1: --buffer-episodes 16384: "
-                                         r"must be a multiple of --num-envs 2560"):
-        sweep.main(["--env", "nicol_slide", "--variant", "preset", "--variant", "num_envs=2560,cycles_per_epoch=1",
+    with pytest.raises(SystemExit, match=r"error: --variant num_envs=3000,cycles_per_epoch=1: --buffer-episodes \d+: "
+                                         r"must be a multiple of --num-envs 3000"):
+        sweep.main(["--env", "nicol_slide", "--variant", "preset", "--variant", "num_envs=3000,cycles_per_epoch=1",
                     "--out", str(out)])
     assert not out.exists()

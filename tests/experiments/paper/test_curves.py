@@ -64,8 +64,8 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
     ) in lines
-    # 5 × 300 + 5 × 240 + (4 × 1,980 + 1,020) + (4 × 4,370 + 1,225)
-    assert "estimated time: 30,345 s (8.4 h) on one H100 running the runs one after another" in printed
+    # 5 × 300 + 5 × 240 + (4 × 1,628 + 1,020) + (4 × 4,370 + 1,268)
+    assert "estimated time: 28,980 s (8.1 h) on one H100 running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
