@@ -23,17 +23,25 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 # ----- paper experiments (experiments/paper/grid.py) without training ----------------------------------------
 
 
+TODAY = "0123456789abcdef"  # the physics fingerprint (`Env.physics_id`) of every env of `no_nicol` and test_claims
+
+
 def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal",
-                   compile_seconds: float | None = None, physics: list[str] | None = None) -> None:
+                   compile_seconds: float | None = None, physics: list[str] | None = None,
+                   given: dict | None = None) -> None:
     """A run directory as `loop.train` writes it (config.json, metrics.csv), with an (empty) checkpoint
     step unless `checkpoint_epoch` is None. `rows`: per epoch, each seed's eval success; every
     epoch is 100 env steps per seed and 10 s of wall time. With `compile_seconds`, metrics.csv has
     `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column. With
-    `physics`, config.json records those physics fingerprints; without, it is a run recorded before them."""
+    `physics`, config.json records those physics fingerprints; without, it is a run recorded before them. With
+    `given` (config fields, e.g. an arm's `given`), config.json holds the whole config they resolve to, as a run
+    writes it; without, only the run's env, agent and seeds (every other field takes its default when read)."""
     seeds = len(rows[0])
     os.makedirs(run_dir if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
     with open(os.path.join(run_dir, "config.json"), "w") as f:
         config = {"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}
+        if given is not None:
+            config = resolve({**given, "env": env, "agent": agent, "seeds": seeds, "run_dir": run_dir}).to_dict()
         json.dump(config | ({"physics": physics} if physics is not None else {}), f)
     with open(os.path.join(run_dir, "metrics.csv"), "w", newline="") as f:
         writer = csv.writer(f)
@@ -53,10 +61,11 @@ def fake_run():
 
 @pytest.fixture
 def no_nicol(monkeypatch):
-    """Envs that only tell their episode length, and a record of the runs prepared and trained."""
+    """Envs that only tell their episode length and physics (`TODAY`), and a record of the runs prepared and
+    trained."""
     calls = []
     monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(
-        episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=())))
+        episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=()), physics_id=TODAY))
 
     def prepare(given, resume, overwrite, **kwargs):
         calls.append(("prepare", given["run_dir"], resume, overwrite))

@@ -38,7 +38,6 @@ from typing import Sequence
 
 import numpy as np
 
-import envs_mjx
 from bidal_jax.config import AGENTS
 from experiments import cli, report, stats
 from experiments.paper import grid, protocol
@@ -260,24 +259,23 @@ def claims_table(rows: Sequence[Claim]) -> str:
 
 
 def other_physics(folders: Sequence[str]) -> dict[str, int]:
-    """Task -> how many runs below `folders` trained on other physics than its env steps today: a run whose
-    config.json records fingerprints (`Env.physics_id`) other than today's alone, or none (runs older than the
-    record). Tasks no longer registered are left out."""
-    today: dict[str, str | None] = {}
-    counts: dict[str, int] = {}
+    """Task -> how many runs below `folders` trained on other physics than its env steps today (`grid.other_physics`:
+    a run whose config.json records fingerprints, `Env.physics_id`, other than today's alone, or none: runs older
+    than the record). Tasks no longer registered are left out."""
+    runs = []
     for folder in folders:
         for where, _, files in os.walk(folder):
             if "config.json" not in files:
                 continue
             try:
-                run = report.load_run(where)
+                runs.append(report.load_run(where))
             except report.RunError:
                 continue  # not a run the claims read (they say why where they need it)
-            env = run["env"]
-            if env not in today:
-                today[env] = envs_mjx.make(env, render=False).physics_id if env in envs_mjx.names() else None
-            if today[env] and report.physics_of(run["config"]) != [today[env]]:
-                counts[env] = counts.get(env, 0) + 1
+    today = grid.physics_today(run["env"] for run in runs)
+    counts: dict[str, int] = {}
+    for run in runs:
+        if grid.other_physics(run["config"], today[run["env"]]):
+            counts[run["env"]] = counts.get(run["env"], 0) + 1
     return counts
 
 

@@ -23,12 +23,16 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 (with `--tasks nicol_lift` only that task trains).
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
-run dir, new/resume/done) and its estimated time on one H100 running the runs one after another
+run dir, new/resume/done/stale) and its estimated time on one H100 running the runs one after another
 (`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
 (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
 whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
 is skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint
-starts again. The persistent compilation cache is not used, so that every run's
+starts again. A stale run (`grid.stale`: its config.json records other physics than its task's today,
+or none, or a config that differs from its arm's today in a field that changes results, e.g. num_envs)
+is neither skipped nor resumed: while any run is stale, training refuses to start (exit 2, one
+`error: ...` line naming it; nothing trained, no run folder changed): move the stale folders away or
+pass another `--out`. The persistent compilation cache is not used, so that every run's
 `wall_time_with_compile` (metrics.csv; `wall_time` starts after compiling) holds a whole compilation.
 
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
@@ -36,13 +40,13 @@ per task, one line per agent: eval success against env steps per seed, mean ± s
 `experiments/report.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
 `--last-n` epochs, per agent and task, each run's wall time with its compilation, their total, and
 the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
-`wall_time`, marked "*": compilation not counted). `--report` trains nothing and writes only
-these, e.g. from run folders whose checkpoints were not kept (results/ holds no checkpoints:
-.gitignore).
+`wall_time`, marked "*": compilation not counted; a stale run's cell is marked "†", and a line below
+the table counts them). `--report` trains nothing and writes only these, e.g. from run folders whose
+checkpoints were not kept (results/ holds no checkpoints: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
-line, nothing written); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was
-saved).
+line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
+written); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from typing import Any, Sequence
+from typing import Any, Collection, Sequence
 
 from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import multihost
@@ -60,12 +64,13 @@ from experiments.paper.grid import Arm
 from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per task, for every agent
 
 PROG = "python -m experiments.paper.curves"
+STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
 # one H100, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline), from
 # docs/results.md (sessions 11-13; compile = the process's time to the end of its first epoch, less one epoch):
 # - nicol_slide (2,560 envs × 1 cycle, 1,600 updates per cycle): multimodal_bidal 14.3 s/epoch, first epoch at
-#   212 s; proprio_baseline assumed 9 s/epoch and 120 s (unmeasured alone at this preset);
+#   212 s; proprio_baseline 6.1 s/epoch, first epoch at 136 s;
 # - nicol_lift (2,048 envs × 2 cycles, 3,200 updates per cycle): multimodal_bidal 41.5 s/epoch, first epoch at
 #   261 s; proprio_baseline 11.2 s/epoch, first epoch at 158 s (100 epochs: 1,382 s);
 # - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
@@ -74,7 +79,7 @@ _REACH = {"image": (6.0, 60.0), "proprio": (6.0, 60.0)}
 SECONDS = {
     "planar_reach": _REACH,
     "ur5_reach": _REACH,
-    "nicol_slide": {"image": (14.3, 198.0), "proprio": (9.0, 120.0)},
+    "nicol_slide": {"image": (14.3, 198.0), "proprio": (6.1, 130.0)},
     "nicol_lift": {"image": (41.5, 220.0), "proprio": (11.2, 148.0)},
 }
 
@@ -137,15 +142,15 @@ def make_arms(
     return arms
 
 
-def estimate(arm: Arm) -> float:
+def estimate(arm: Arm, env) -> float:
     """Estimated seconds to train what is left of the run (`SECONDS`): its compilation and its
-    remaining epochs; 0 when it is done."""
-    step = grid.latest(arm)
-    if grid.status_at(step, arm.epochs) == "done":
+    remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is moved away)."""
+    state, step, _ = grid.status(arm, env.physics_id)
+    if state == "done":
         return 0.0
     kind = "image" if arm.config.agent.uses_image else "proprio"
     per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
-    return compile_s + per_epoch * (arm.epochs - (step or 0))
+    return compile_s + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
 
 
 def duration(seconds: float) -> str:
@@ -155,14 +160,18 @@ def duration(seconds: float) -> str:
 
 
 def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
-    """The plan: one line per run with its estimated time, then the estimated total."""
-    seconds = [estimate(arm) for arm in arms]
+    """The plan: one line per run with its estimated time, then the estimated total, and the stale runs' count."""
+    seconds = [estimate(arm, envs[arm.name]) for arm in arms]
     lines = [f"plan: {len(arms)} runs"]
     lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
     lines.append(
         f"estimated time: {duration(sum(seconds))} on one H100 running the runs one after another "
         "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
     )
+    stale = sum(grid.stale(arm, envs[arm.name].physics_id) is not None for arm in arms)
+    if stale:
+        lines.append(f"stale: {stale} of {len(arms)} runs; training refuses them until their folders are moved away "
+                     "or another --out is given (the estimate counts them from the start)")
     return "\n".join(lines)
 
 
@@ -180,8 +189,9 @@ def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
     return f"{report.final_cell(curve, last_n)}, {seconds(run)}{progress}"
 
 
-def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
-    """Markdown: one row per agent, one column per task; a run without epochs is "—"."""
+def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str] = ()) -> str:
+    """Markdown: one row per agent, one column per task; a run without epochs is "—", one of `stale` (arm
+    names) is marked `STALE`."""
     tasks = {arm.given["env"]: arm.epochs for arm in arms}
     agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
     by_dir = {c.run_dir: c for c in report.curves(list(runs.values()))}
@@ -191,9 +201,23 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> st
         cells = [agent]
         for arm in (a for a in arms if a.given["agent"] == agent):
             run = runs.get(arm.name)
-            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n))
+            mark = STALE if arm.name in stale else ""
+            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n) + mark)
         rows.append(cells)
     return report.markdown_table(head, rows)
+
+
+def stale_note(stale: Collection[str], cells: int) -> list[str]:
+    """The line below the table that says what `STALE` marks and how many of its `cells` it marks; none
+    when no run is stale."""
+    if not stale:
+        return []
+    return [
+        f"{STALE} stale: {len(stale)} of {cells} cells, runs not recorded on today's physics of their task or made "
+        "with another config than their arm's today (`grid.stale` in experiments/paper/grid.py; `--dry-run` says "
+        "why); training refuses them until their folders are moved away.",
+        "",
+    ]
 
 
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
@@ -215,6 +239,8 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str 
     runs = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
+    today = grid.physics_today(arm.given["env"] for arm in arms)
+    stale = [arm.name for arm in arms if arm.name in runs and grid.stale(arm, today[arm.given["env"]])]
     report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
     total = sum(float(report.with_compile_times(r)[0]["wall_time"][-1]) for r in runs.values())
     return "\n".join([
@@ -224,8 +250,9 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str 
         "then the run's wall time (its last `wall_time_with_compile`, compilation included; * its last "
         "`wall_time`, compilation not counted, where metrics.csv predates that column).",
         "",
-        results_table(arms, runs, last_n),
+        results_table(arms, runs, last_n, stale),
         "",
+        *stale_note(stale, len(runs)),
         f"Total wall time of the runs: {duration(total)}.",
         "",
         gaps(arms, runs),

@@ -3,10 +3,12 @@
 
 An experiment is a list of `Arm`s: a name and the config fields of one run (`run_dir` and
 `epochs` resolved). `status` says what running it again does: "done" (its latest checkpoint is
-at its epochs: skipped), "resume" (an earlier checkpoint: continued from it) or "new" (no
-checkpoint: its directory is deleted and it starts again). `train_arms` trains them in-process
-(`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`): 0 done; 2 bad
-config or checkpoint, or a run directory in use (one `error: ...` line); 3 diverged; 4 the disk
+at its epochs: skipped), "resume" (an earlier checkpoint: continued from it), "new" (no
+checkpoint: its directory is deleted and it starts again) or "stale" (its folder holds epochs of
+a run on other physics or with another config than the arm's today, `stale`: refused). `train_arms`
+trains them in-process (`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`):
+0 done; 2 bad config or checkpoint, a stale run (refused before any run trains; no folder is deleted
+or written), or a run directory in use (one `error: ...` line); 3 diverged; 4 the disk
 (no room for a checkpoint, or a write failed); 130 and 143 stopped by SIGINT and SIGTERM (a
 checkpoint was saved). Each run locks its own directory while it trains (`bidal_jax.run.rundir`),
 not the experiment's folder: two commands may share the folder (e.g. `experiments.paper.transfer_learning
@@ -18,10 +20,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
-from bidal_jax.config import Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
+from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
 from bidal_jax.run import checkpoint, validate
 from experiments import cli, report
 
@@ -30,6 +32,11 @@ from experiments import cli, report
 PASS_THROUGH = frozenset(
     {f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)} - {"exploration_starts"}
 ) | {"checkpoint_every"}
+# config fields that cannot change what a run learns or reports, so `stale` does not compare them: where it is
+# written (run_dir) and where its transfer source lies (init_from: a path; the source's own config is its
+# folder's), how often it saves a checkpoint, and how its envs are laid out across devices (env_shards: its
+# random draws differ, not its budget, data or learner)
+NOT_COMPARED = frozenset({"run_dir", "init_from", "checkpoint_every", "env_shards"})
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,9 +118,80 @@ def status_at(step: int | None, epochs: int) -> str:
     return "new" if step is None else "done" if step >= epochs else "resume"
 
 
-def status(arm: Arm) -> str:
-    """The run's `status_at` its latest checkpoint."""
-    return status_at(latest(arm), arm.epochs)
+class Status(NamedTuple):
+    """What training does with a run (`state`: "stale", else `status_at`), the epoch it has reached (`latest`)
+    and why it is stale (`stale`; None when it is not)."""
+
+    state: str
+    step: int | None
+    why: str | None
+
+
+def status(arm: Arm, physics: str | None) -> Status:
+    """The run's `Status`: "stale" (`stale`, `physics` today's fingerprint of the arm's env), else its `status_at`
+    its latest checkpoint."""
+    step, why = latest(arm), stale(arm, physics)
+    return Status("stale" if why else status_at(step, arm.epochs), step, why)
+
+
+def physics_today(envs: Iterable[str]) -> dict[str, str | None]:
+    """Env name -> the fingerprint of the physics it steps today (`Env.physics_id`, of an env built without
+    rendering: the same model); None for an env no longer registered."""
+    return {env: envs_mjx.make(env, render=False).physics_id if env in envs_mjx.names() else None for env in set(envs)}
+
+
+def other_physics(config: dict, today: str | None) -> str | None:
+    """Why a run (its config.json) is not on the physics `today`: "trained on other physics" when it records
+    fingerprints (`Env.physics_id`, `report.physics_of`) other than `today` alone (a run resumed after a model
+    change records both), "physics not recorded" when it records none (runs older than that record); None
+    when it is on today's, or `today` is None (an env no longer registered: nothing to compare)."""
+    recorded = report.physics_of(config)
+    if today is None or recorded == [today]:
+        return None
+    return "trained on other physics" if recorded else "physics not recorded"
+
+
+def config_changes(config: dict, today: Config) -> str | None:
+    """"config differs: num_envs 512 → 2560, ..." for the fields of a run's config.json whose values differ
+    from `today`'s (the arm's resolved config), None when none does. Every field that sets what the run
+    learns or reports counts: all of train (the budget and the data: num_envs, cycles_per_epoch,
+    updates_per_cycle, batch_size, buffer_episodes, eval_envs; and the learner: learning rates, noise, HER,
+    exploration starts, ...), all of network, and of run env, agent, seeds, seed, epochs (the budget the run
+    was made for: a run of another one reports other epochs; raising a grid's epochs makes its finished runs
+    stale), target_success and init_parts; not `NOT_COMPARED`. A field the config.json lacks (a run older than
+    it) takes its default, as `Config.from_dict` and resuming do."""
+    changed = []
+    for name, group in CONFIG_CLASSES.items():
+        recorded, ours = config.get(name) or {}, getattr(today, name)
+        for field in (f for f in dataclasses.fields(group) if f.name not in NOT_COMPARED):
+            was, now = recorded.get(field.name, field.default), getattr(ours, field.name)
+            if was != now:
+                changed.append(f"{field.name} {was} → {now}")
+    return f"config differs: {', '.join(changed)}" if changed else None
+
+
+def stale(arm: Arm, physics: str | None) -> str | None:
+    """Why the epochs in the arm's folder do not stand for the arm today, or None: its config.json
+    (`other_physics`: not on `physics`, today's fingerprint of its env; `config_changes`: a field differs from
+    the arm's resolved config), reasons joined by "; ". A folder without epochs is never stale: it starts again."""
+    run = loaded(arm.run_dir)
+    if run is None:
+        return None
+    reasons = [other_physics(run["config"], physics), config_changes(run["config"], arm.config)]
+    return "; ".join(r for r in reasons if r) or None
+
+
+def refuse_stale(arms: Sequence[Arm], envs: dict[str, Any]) -> None:
+    """ConfigError, one line, when a run among `arms` is stale (`stale`, against its env's `physics_id` in
+    `envs`): the first one's folder and why, the other stale folders, and what to do."""
+    found = [(arm, why) for arm in arms if (why := stale(arm, envs[arm.name].physics_id))]
+    if found:
+        (arm, why), others = found[0], [a.run_dir for a, _ in found[1:]]
+        also = f"; also stale: {', '.join(others)}" if others else ""
+        raise ConfigError(
+            f"{arm.run_dir} is stale ({why}){also}. Nothing was trained and no run folder changed: move the "
+            "stale folders away or pass another --out"
+        )
 
 
 def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
@@ -133,18 +211,19 @@ def plan_line(arm: Arm, env) -> str:
     run, train = arm.config.run, arm.config.train
     per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
     source = f", parameters from {run.init_from}" if run.init_from else ""
-    step = latest(arm)
-    state = status_at(step, arm.epochs)
+    state, step, why = status(arm, env.physics_id)
     return (
         f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
         f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
-        f"[{state}" + (f", checkpoint at epoch {step}]" if state == "resume" else "]")
+        f"[{state}" + (f", checkpoint at epoch {step}]" if state == "resume" else f": {why}]" if why else "]")
     )
 
 
 def train_arm(arm: Arm, env, quiet: bool) -> None:
-    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done."""
-    state = status(arm)
+    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done; ConfigError when
+    it is stale (`refuse_stale`)."""
+    refuse_stale([arm], {arm.name: env})
+    state = status_at(latest(arm), arm.epochs)
     if state == "done":
         print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
         return
@@ -156,8 +235,10 @@ def train_arm(arm: Arm, env, quiet: bool) -> None:
 
 
 def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
-    """Train the runs in order (`train_arm`) until one fails or is stopped; the exit code."""
+    """Train the runs in order (`train_arm`) until one fails or is stopped; the exit code. A stale run among them
+    (`refuse_stale`) is refused before any trains: 2."""
     try:
+        refuse_stale(arms, envs)
         for arm in arms:
             train_arm(arm, envs[arm.name], quiet)
     except cli.FAILURES as err:

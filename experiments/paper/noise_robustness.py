@@ -18,7 +18,8 @@ the mean over runs; and the command that regenerates it),
 checkpoints: training again there would start the runs afresh).
 
 Resumable: a finished agent is skipped, an interrupted one resumed from its latest
-checkpoint; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
+checkpoint, and a stale one (`grid.stale`: made on other physics or with another config) refused
+before any agent trains; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
 the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
 transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad

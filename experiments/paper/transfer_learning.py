@@ -33,7 +33,8 @@ is not in the transfer arm's times.
 
 Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
 skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
-again (`experiments/paper/grid.py`). Runs are driven in-process (`experiments/cli.py`: prepare,
+again, and a stale one (made on other physics or with another config) is refused before any run of
+`--arms` trains (`experiments/paper/grid.py`). Runs are driven in-process (`experiments/cli.py`: prepare,
 then train), in the order source, transfer, scratch, so that the transfer's checks run as early
 as they can. `--arms` trains
 only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the

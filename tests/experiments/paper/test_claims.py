@@ -7,18 +7,18 @@ import types
 
 import pytest
 
+import envs_mjx
 from bidal_jax.config import AGENTS
 from experiments.paper import claims, protocol
-from tests.conftest import write_fake_run
+from tests.conftest import TODAY, write_fake_run
 
 EPOCHS = 100  # the NICOL presets' budget, which the fake runs must reach to be measured
-TODAY = "0123456789abcdef"  # every env's physics fingerprint in these tests
 
 
 @pytest.fixture(autouse=True)
 def todays_physics(monkeypatch):
     """Every env steps the physics `TODAY` (no env is built)."""
-    monkeypatch.setattr(claims.envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(physics_id=TODAY))
+    monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(physics_id=TODAY))
 
 
 @pytest.fixture

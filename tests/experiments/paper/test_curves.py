@@ -1,6 +1,6 @@
 """The learning-curve grid (experiments/paper/curves.py) on hand-written run directories, without
-training (`no_nicol` and `fake_run` of conftest.py): the plan and its estimate, one budget per
-task, resuming, refusals, the held-starts variant and the report."""
+training (`no_nicol` and `write_fake_run` of conftest.py): the plan and its estimate, one budget per
+task, resuming, stale runs, refusals, the held-starts variant and the report."""
 
 import csv
 import os
@@ -10,10 +10,22 @@ import pytest
 import envs_mjx
 from bidal_jax import config as config_lib
 from experiments.paper import curves, grid
+from tests.conftest import TODAY, write_fake_run
 
 TASKS = ("planar_reach", "ur5_reach", "nicol_slide", "nicol_lift")
 SMALL = ["--tasks", "planar_reach", "--agents", "proprio_baseline,visual_baseline,multimodal_baseline",
          "--seeds", "2", "--epochs", "3", "--quiet"]
+DONE = [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)]  # 3 epochs of 2 seeds: a finished run of SMALL
+
+
+@pytest.fixture
+def fake_run():
+    """`write_fake_run` of a run made today for its arm of `SMALL` or `REPORT` (3 epochs): on today's physics
+    (`no_nicol`'s), with the arm's config; `physics` and `given` (more config fields) make it another."""
+    def write(run_dir, env, rows, checkpoint_epoch, physics=(TODAY,), given=(), **kwargs):
+        write_fake_run(run_dir, env, rows, checkpoint_epoch, physics=None if physics is None else list(physics),
+                       given={"epochs": 3, **dict(given)}, **kwargs)
+    return write
 
 
 def _arms(argv, out="out"):
@@ -64,8 +76,8 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
     ) in lines
-    # 5 × 300 + 5 × 240 + (4 × 1,628 + 1,020) + (4 × 4,370 + 1,268)
-    assert "estimated time: 28,980 s (8.1 h) on one H100 running the runs one after another" in printed
+    # 5 × 300 + 5 × 240 + (4 × 1,628 + 740) + (4 × 4,370 + 1,268)
+    assert "estimated time: 28,700 s (8.0 h) on one H100 running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
@@ -75,7 +87,7 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
         str(out / "planar_reach" / a) for a in ("proprio_baseline", "visual_baseline", "multimodal_baseline")
     )
     # finished, its checkpoints not kept (as in results/): its metrics hold all its epochs
-    fake_run(done, "planar_reach", [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)], None, agent="proprio_baseline")
+    fake_run(done, "planar_reach", DONE, None, agent="proprio_baseline")
     fake_run(interrupted, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline")
     os.makedirs(unstarted)
     with open(os.path.join(unstarted, "metrics.csv"), "w") as f:
@@ -176,7 +188,7 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
     # runs recorded before wall_time_with_compile show their wall_time, marked; the other its time with compile
     assert "| proprio_baseline | 0.700 ± 0.100, 30 s* | 0.750 ± 0.250, 30 s* |" in table
     assert "| multimodal_bidal | 0.350 ± 0.050, 80 s, epoch 2 of 3 | — |" in table
-    assert "Total wall time of the runs: 140 s (2.3 min)." in table
+    assert "Total wall time of the runs: 140 s (2.3 min)." in table and "†" not in table  # no run is stale
     assert "Missing: ur5_reach/multimodal_bidal. Unfinished: planar_reach/multimodal_bidal (epoch 2 of 3)." in table
     with open(out / "curves.png", "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
@@ -195,3 +207,66 @@ def test_a_finished_grid_says_so():
     arms = _arms(["--epochs", "2"])[:1]
     runs = {arms[0].name: {"epoch": [1.0, 2.0]}}
     assert curves.gaps(arms, runs) == "No run is missing or unfinished."
+
+
+@pytest.mark.parametrize("physics, given, expected", [
+    ((TODAY,), {}, None),
+    # what cannot change results: where the run is written, its checkpoint cadence, its device layout
+    ((TODAY,), {"checkpoint_every": 1, "env_shards": 2}, None),
+    (("old",), {}, "trained on other physics"),
+    (("old", TODAY), {}, "trained on other physics"),  # resumed after a model change
+    (None, {}, "physics not recorded"),  # older than the record
+    ((TODAY,), {"num_envs": 512, "batch_size": 64}, "config differs: num_envs 512 → 16, batch_size 64 → 256"),
+    ((TODAY,), {"epochs": 5}, "config differs: epochs 5 → 3"),  # a run made for another budget
+    (None, {"critic_lr": 0.01}, "physics not recorded; config differs: critic_lr 0.01 → 0.001"),
+])
+def test_a_run_on_other_physics_or_with_another_config_is_stale(physics, given, expected, tmp_path, fake_run):
+    arm = _arms(SMALL, str(tmp_path))[0]  # planar_reach proprio_baseline, 2 seeds, 3 epochs
+    assert grid.status(arm, TODAY) == ("new", None, None)  # no folder: never stale
+    fake_run(arm.run_dir, "planar_reach", DONE, None, agent="proprio_baseline", physics=physics, given=given)
+    assert grid.stale(arm, TODAY) == expected
+    assert grid.status(arm, TODAY) == (("done", 3, None) if expected is None else ("stale", 3, expected))
+
+
+def test_a_run_of_an_older_nicol_preset_is_stale(tmp_path, fake_run):
+    arm = next(a for a in _arms(["--seeds", "2"], str(tmp_path)) if a.name == "nicol_slide/proprio_baseline")
+    old = {"epochs": 100, "num_envs": 512, "cycles_per_epoch": 5, "updates_per_cycle": 80, "buffer_episodes": 16384}
+    fake_run(arm.run_dir, "nicol_slide", DONE, None, agent="proprio_baseline", given=old)
+    assert grid.stale(arm, TODAY) == ("config differs: num_envs 512 → 2560, cycles_per_epoch 5 → 1, "
+                                      "updates_per_cycle 80 → 1600, buffer_episodes 16384 → 15360")
+
+
+def test_training_refuses_stale_runs_before_any_trains(tmp_path, no_nicol, fake_run, capsys):
+    out = tmp_path / "out"
+    new, old, other = (str(out / "planar_reach" / a) for a in ("proprio_baseline", "visual_baseline",
+                                                               "multimodal_baseline"))
+    fake_run(old, "planar_reach", DONE[:1], 1, agent="visual_baseline", physics=("old",))  # would resume
+    fake_run(other, "planar_reach", DONE, None, agent="multimodal_baseline", given={"num_envs": 8})  # would be done
+    before = {d: sorted(os.walk(d)) for d in (old, other)}
+    assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{old} [stale: trained on other physics]; estimated 78 s" in printed  # counted from the start
+    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 78 s" in printed
+    assert "stale: 2 of 3 runs; training refuses them" in printed
+    assert curves.main([*SMALL, "--out", str(out)]) == 2
+    assert no_nicol == []  # the first run, new, was not trained either
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {old} is stale (trained on other physics); also stale: {other}. Nothing was trained and no run "
+        "folder changed: move the stale folders away or pass another --out"
+    ]
+    assert {d: sorted(os.walk(d)) for d in (old, other)} == before and not os.path.exists(new)
+
+
+def test_the_table_marks_stale_cells(tmp_path, no_nicol, fake_run):
+    out = tmp_path / "out"
+    fake_run(str(out / "planar_reach" / "proprio_baseline"), "planar_reach", DONE, None, agent="proprio_baseline")
+    fake_run(str(out / "planar_reach" / "multimodal_bidal"), "planar_reach", DONE, None, physics=None)
+    fake_run(str(out / "ur5_reach" / "proprio_baseline"), "ur5_reach", DONE, None, agent="proprio_baseline",
+             given={"updates_per_cycle": 80})
+    assert curves.main([*REPORT, "--out", str(out)]) == 0
+    table = (out / "table.md").read_text()
+    assert "| proprio_baseline | 0.700 ± 0.100, 30 s* | 0.700 ± 0.100, 30 s*† |" in table
+    assert "| multimodal_bidal | 0.700 ± 0.100, 30 s*† | — |" in table
+    assert ("\n\n† stale: 2 of 3 cells, runs not recorded on today's physics of their task or made with another "
+            "config than their arm's today") in table
+    assert table.index("| multimodal_bidal |") < table.index("† stale") < table.index("Total wall time")

@@ -10,6 +10,7 @@ import pytest
 
 from experiments.paper import grid
 from experiments.paper import transfer_learning as experiment
+from tests.conftest import TODAY, write_fake_run
 
 # per arm: per-epoch per-seed eval success (2 seeds); epochs of 100 env steps per seed, 10 s each
 FAKE = {
@@ -18,6 +19,16 @@ FAKE = {
     "scratch": [(0.0, 0.2), (0.1, 0.1), (0.3, 0.5)],
 }
 EXPERIMENT = ["--seeds", "2", "--epochs", "3", "--source-epochs", "2", "--last-n", "2", "--quiet"]
+
+
+@pytest.fixture
+def fake_run():
+    """`write_fake_run` of a run made today for its arm of `EXPERIMENT`: on today's physics (`no_nicol`'s), with the
+    arm's config (the source 2 epochs, the reduced-lift arms 3)."""
+    def write(run_dir, env, rows, checkpoint_epoch, **kwargs):
+        epochs = 2 if env == "nicol_slide" else 3
+        write_fake_run(run_dir, env, rows, checkpoint_epoch, physics=[TODAY], given={"epochs": epochs}, **kwargs)
+    return write
 
 
 def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_nicol, fake_run, capsys):
@@ -83,6 +94,19 @@ def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_
     shutil.rmtree(out / "transfer" / "checkpoints")  # results only: checkpoints are not needed
     assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
     assert len(no_nicol) == 2 and "| transfer | 2 | 3 | 300 |" in (out / "table.md").read_text()
+
+
+def test_a_stale_arm_is_refused_when_it_would_train(tmp_path, no_nicol, capsys):
+    out = tmp_path / "out"
+    write_fake_run(str(out / "scratch"), "nicol_lift_reduced", FAKE["scratch"], None, given={"epochs": 3})  # no physics
+    assert experiment.main([*EXPERIMENT, "--out", str(out)]) == 2
+    assert no_nicol == []  # not even the source, which comes first
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {out / 'scratch'} is stale (physics not recorded). Nothing was trained and no run folder changed: "
+        "move the stale folders away or pass another --out"
+    ]
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "source"]) == 0  # trains only the source
+    assert [call[:2] for call in no_nicol] == [("prepare", str(out / "source")), ("train", str(out / "source"))]
 
 
 def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
