@@ -234,7 +234,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cli.exit_code(err)
     envs = grid.make_envs(arms)
     print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
-    code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
+    # the transfer arm starts from the source's parameters: a stale source is refused too, trained or not
+    source = [arm for arm in arms if arm.name == "source" and "transfer" in train_names]
+    try:
+        grid.refuse_stale(source, envs)
+        code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
+    except ConfigError as err:
+        code = cli.exit_code(err)
     variant = ", held starts" if args.held_starts else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results

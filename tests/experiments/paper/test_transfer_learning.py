@@ -109,6 +109,17 @@ def test_a_stale_arm_is_refused_when_it_would_train(tmp_path, no_nicol, capsys):
     assert [call[:2] for call in no_nicol] == [("prepare", str(out / "source")), ("train", str(out / "source"))]
 
 
+def test_the_transfer_arm_refuses_a_stale_source(tmp_path, no_nicol, capsys):
+    out = tmp_path / "out"
+    write_fake_run(str(out / "source"), "nicol_slide", FAKE["source"], None, given={"epochs": 2})  # no physics
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "transfer"]) == 2
+    assert no_nicol == []
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: {out / 'source'} is stale (physics not recorded). Nothing was trained and no run folder changed: "
+        "move the stale folders away or pass another --out"
+    ]
+
+
 def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
     args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
     arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
