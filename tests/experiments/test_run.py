@@ -75,6 +75,6 @@ def test_print_config_shows_the_preset_and_the_command_line_and_writes_nothing(t
     monkeypatch.chdir(tmp_path)
     assert run.main(["--env", "nicol_slide", "--seeds", "3", "--print-config"]) == 0
     config = json.loads(capsys.readouterr().out)
-    assert config["train"]["num_envs"] == 512 and config["run"]["seeds"] == 3  # the nicol preset, then the option
+    assert config["train"]["num_envs"] == 2560 and config["run"]["seeds"] == 3  # the nicol preset, then the option
     assert config["train"]["exploration_starts"] == 0.0  # faithful to the paper: no held starts by default
     assert os.listdir(tmp_path) == []
