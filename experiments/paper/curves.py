@@ -142,10 +142,10 @@ def make_arms(
     return arms
 
 
-def estimate(arm: Arm, env) -> float:
-    """Estimated seconds to train what is left of the run (`SECONDS`): its compilation and its
+def estimate(arm: Arm, status: grid.Status) -> float:
+    """Estimated seconds to train what is left of the run (`SECONDS`) at its `status`: its compilation and its
     remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is moved away)."""
-    state, step, _ = grid.status(arm, env.physics_id)
+    state, step, _ = status
     if state == "done":
         return 0.0
     kind = "image" if arm.config.agent.uses_image else "proprio"
@@ -161,14 +161,15 @@ def duration(seconds: float) -> str:
 
 def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     """The plan: one line per run with its estimated time, then the estimated total, and the stale runs' count."""
-    seconds = [estimate(arm, envs[arm.name]) for arm in arms]
+    statuses = [grid.status(arm, envs[arm.name].physics_id) for arm in arms]
+    seconds = [estimate(arm, status) for arm, status in zip(arms, statuses)]
     lines = [f"plan: {len(arms)} runs"]
     lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
     lines.append(
         f"estimated time: {duration(sum(seconds))} on one H100 running the runs one after another "
         "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
     )
-    stale = sum(grid.stale(arm, envs[arm.name].physics_id) is not None for arm in arms)
+    stale = sum(status.state == "stale" for status in statuses)
     if stale:
         lines.append(f"stale: {stale} of {len(arms)} runs; training refuses them until their folders are moved away "
                      "or another --out is given (the estimate counts them from the start)")
@@ -233,14 +234,14 @@ def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
     return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}."
 
 
-def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int) -> str | None:
+def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: dict[str, str | None]) -> str | None:
     """curves.png/.csv in `out` from the runs that have epochs; returns the text of table.md (None
-    if none has)."""
+    if none has), its stale runs marked (`today`: env name -> its physics fingerprint today)."""
     runs = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
-    today = grid.physics_today(arm.given["env"] for arm in arms)
-    stale = [arm.name for arm in arms if arm.name in runs and grid.stale(arm, today[arm.given["env"]])]
+    stale = [arm.name for arm in arms
+             if arm.name in runs and grid.stale_config(runs[arm.name]["config"], arm, today[arm.given["env"]])]
     report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
     total = sum(float(report.with_compile_times(r)[0]["wall_time"][-1]) for r in runs.values())
     return "\n".join([
@@ -270,7 +271,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
     except ConfigError as err:
         return cli.exit_code(err)
-    code = 0
+    code, envs = 0, None
     if not args.report:
         envs = grid.make_envs(arms)
         print(plan_text(arms, envs), flush=True)
@@ -281,7 +282,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
     title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
     if multihost.is_main():  # one process writes the results
-        grid.write_table(out, plot_results(out, arms, title, args.last_n))
+        # each task's physics today: of the envs built to train, else (--report) built for it
+        today = ({arm.given["env"]: envs[arm.name].physics_id for arm in arms} if envs
+                 else grid.physics_today(arm.given["env"] for arm in arms))
+        grid.write_table(out, plot_results(out, arms, title, args.last_n, today))
     return code
 
 

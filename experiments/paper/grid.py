@@ -171,13 +171,16 @@ def config_changes(config: dict, today: Config) -> str | None:
 
 
 def stale(arm: Arm, physics: str | None) -> str | None:
-    """Why the epochs in the arm's folder do not stand for the arm today, or None: its config.json
-    (`other_physics`: not on `physics`, today's fingerprint of its env; `config_changes`: a field differs from
-    the arm's resolved config), reasons joined by "; ". A folder without epochs is never stale: it starts again."""
+    """Why the epochs in the arm's folder do not stand for the arm today (`stale_config` of its config.json,
+    `physics` today's fingerprint of its env), or None. A folder without epochs is never stale: it starts again."""
     run = loaded(arm.run_dir)
-    if run is None:
-        return None
-    reasons = [other_physics(run["config"], physics), config_changes(run["config"], arm.config)]
+    return None if run is None else stale_config(run["config"], arm, physics)
+
+
+def stale_config(config: dict, arm: Arm, physics: str | None) -> str | None:
+    """Why a run of `arm` with this config.json does not stand for the arm today, or None: `other_physics` (not on
+    `physics`) and `config_changes` (a field differs from the arm's resolved config), joined by "; "."""
+    reasons = [other_physics(config, physics), config_changes(config, arm.config)]
     return "; ".join(r for r in reasons if r) or None
 
 
@@ -220,9 +223,8 @@ def plan_line(arm: Arm, env) -> str:
 
 
 def train_arm(arm: Arm, env, quiet: bool) -> None:
-    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done; ConfigError when
-    it is stale (`refuse_stale`)."""
-    refuse_stale([arm], {arm.name: env})
+    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done. Stale runs are refused
+    before, by `train_arms`, for all its arms at once."""
     state = status_at(latest(arm), arm.epochs)
     if state == "done":
         print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
