@@ -221,17 +221,32 @@ def stale_note(stale: Collection[str], cells: int) -> list[str]:
     ]
 
 
+def absent_epochs(run: dict) -> list[int]:
+    """The epochs from 1 to the run's last that its metrics.csv has no row for (a file damaged outside the run)."""
+    return sorted(set(range(1, int(run["epoch"][-1]) + 1)) - {int(e) for e in run["epoch"]})
+
+
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
-    """The line naming the runs without epochs and those short of their epochs."""
+    """The line naming the runs without epochs, those short of their epochs, and those whose metrics.csv
+    lacks rows (their final success averages their last rows, whatever epochs those are)."""
     missing = [arm.name for arm in arms if arm.name not in runs]
     unfinished = [
         f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
         for arm in arms
         if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
     ]
+    holes = [
+        f"{arm.name} ({', '.join(map(str, absent))})"
+        for arm in arms
+        if arm.name in runs and (absent := absent_epochs(runs[arm.name]))
+    ]
+    absent_line = (
+        f" Epochs without a row in metrics.csv: {'; '.join(holes)}; the final success averages the last rows there are."
+        if holes else ""
+    )
     if not missing and not unfinished:
-        return "No run is missing or unfinished."
-    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}."
+        return "No run is missing or unfinished." + absent_line
+    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}." + absent_line
 
 
 def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: dict[str, str | None]) -> str | None:

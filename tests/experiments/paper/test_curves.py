@@ -209,6 +209,15 @@ def test_a_finished_grid_says_so():
     assert curves.gaps(arms, runs) == "No run is missing or unfinished."
 
 
+def test_a_run_whose_metrics_lack_an_epoch_is_named():
+    arms = _arms(["--epochs", "4"])[:1]
+    runs = {arms[0].name: {"epoch": [1.0, 2.0, 4.0]}}
+    assert curves.gaps(arms, runs) == (
+        f"No run is missing or unfinished. Epochs without a row in metrics.csv: {arms[0].name} (3); "
+        "the final success averages the last rows there are."
+    )
+
+
 @pytest.mark.parametrize("physics, given, expected", [
     ((TODAY,), {}, None),
     # what cannot change results: where the run is written, its checkpoint cadence, its device layout
