@@ -41,7 +41,8 @@ per task, one line per agent: eval success against env steps per seed, mean ± s
 `--last-n` epochs, per agent and task, each run's wall time with its compilation, their total, and
 the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
 `wall_time`, marked "*": compilation not counted; a stale run's cell is marked "†", and a line below
-the table counts them). `--report` trains nothing and writes only these, e.g. from run folders whose
+the table counts them; another names the runs resumed with an empty replay buffer, `grid.fresh_buffer_note`,
+and the epochs a run's metrics.csv lacks). `--report` trains nothing and writes only these, e.g. from run folders whose
 checkpoints were not kept (results/ holds no checkpoints: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
@@ -68,9 +69,10 @@ STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
 # one H100, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline), from
-# docs/results.md (sessions 11-13; compile = the process's time to the end of its first epoch, less one epoch):
-# - nicol_slide (2,560 envs × 1 cycle, 1,600 updates per cycle): multimodal_bidal 14.3 s/epoch, first epoch at
-#   212 s; proprio_baseline 6.1 s/epoch, first epoch at 136 s;
+# docs/results.md (sessions 11-14; compile = the process's time to the end of its first epoch, less one epoch):
+# - nicol_slide (2,560 envs × 1 cycle, 1,600 updates per cycle), the grid's own cells (session 14, a checkpoint
+#   every 5 epochs included): multimodal_bidal 16.8 s/epoch, first epoch at 195 s (a sweep, which saves no
+#   checkpoints: 14.3 s/epoch); proprio_baseline 6.9 s/epoch alone, first epoch at 144 s;
 # - nicol_lift (2,048 envs × 2 cycles, 3,200 updates per cycle): multimodal_bidal 41.5 s/epoch, first epoch at
 #   261 s; proprio_baseline 11.2 s/epoch, first epoch at 158 s (100 epochs: 1,382 s);
 # - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
@@ -79,7 +81,7 @@ _REACH = {"image": (6.0, 60.0), "proprio": (6.0, 60.0)}
 SECONDS = {
     "planar_reach": _REACH,
     "ur5_reach": _REACH,
-    "nicol_slide": {"image": (14.3, 198.0), "proprio": (6.1, 130.0)},
+    "nicol_slide": {"image": (16.8, 178.0), "proprio": (6.9, 137.0)},
     "nicol_lift": {"image": (41.5, 220.0), "proprio": (11.2, 148.0)},
 }
 
@@ -269,6 +271,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         results_table(arms, runs, last_n, stale),
         "",
         *stale_note(stale, len(runs)),
+        *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
         f"Total wall time of the runs: {duration(total)}.",
         "",
         gaps(arms, runs),

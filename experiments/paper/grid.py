@@ -256,6 +256,20 @@ def loaded(run_dir: str) -> dict | None:
         return None
 
 
+def fresh_buffer_note(configs: dict[str, dict]) -> list[str]:
+    """The lines below a table naming its runs resumed with an empty replay buffer (`--resume --fresh-buffer`:
+    config.json's "fresh_buffer_epochs"), `configs` name -> config.json; none when no run was."""
+    resumed = [f"{name} after epoch{'s' * (len(epochs) > 1)} {', '.join(map(str, epochs))}"
+               for name, config in configs.items() if (epochs := config.get("fresh_buffer_epochs"))]
+    if not resumed:
+        return []
+    return [
+        f"Resumed on another machine with an empty replay buffer (`--resume --fresh-buffer`, a deviation from an "
+        f"uninterrupted run: the next epochs learn from fresh episodes only): {'; '.join(resumed)}.",
+        "",
+    ]
+
+
 def write_table(out: str, text: str | None) -> None:
     """Write `text` to OUT/table.md and print it; None: no run has epochs yet."""
     if text is None:

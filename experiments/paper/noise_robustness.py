@@ -119,7 +119,9 @@ def write_report(out: str) -> str:
     if not found:
         return ""
     report.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
-    text = f"{table(found, budgets)}\nRegenerate from the run folders: `{PROG} --report --out {out}`\n"
+    runs = {agent: run for agent in AGENTS if (run := grid.loaded(os.path.join(out, agent)))}
+    resumed = "\n".join(grid.fresh_buffer_note({agent: run["config"] for agent, run in runs.items()}))
+    text = f"{table(found, budgets)}\n{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)
     return text

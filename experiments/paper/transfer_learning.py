@@ -209,6 +209,7 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
         "",
         results_table(curves, last_n),
         "",
+        *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
     ]
     by_label = {c.label: c for c in curves}
     if {"transfer", "scratch"} <= set(by_label):

@@ -76,8 +76,8 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
     ) in lines
-    # 5 × 300 + 5 × 240 + (4 × 1,628 + 740) + (4 × 4,370 + 1,268)
-    assert "estimated time: 28,700 s (8.0 h) on one H100 running the runs one after another" in printed
+    # 5 × 300 + 5 × 240 + (4 × 1,858 + 827) + (4 × 4,370 + 1,268)
+    assert "estimated time: 29,707 s (8.3 h) on one H100 running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
@@ -279,3 +279,11 @@ def test_the_table_marks_stale_cells(tmp_path, no_nicol, fake_run):
     assert ("\n\n† stale: 2 of 3 cells, runs not recorded on today's physics of their task or made with another "
             "config than their arm's today") in table
     assert table.index("| multimodal_bidal |") < table.index("† stale") < table.index("Total wall time")
+
+
+def test_runs_resumed_with_an_empty_buffer_are_named_below_the_table():
+    configs = {"nicol_lift/multimodal_bidal": {"fresh_buffer_epochs": [35, 70]}, "nicol_lift/proprio_baseline": {}}
+    note = grid.fresh_buffer_note(configs)
+    assert note[0].endswith("(`--resume --fresh-buffer`, a deviation from an uninterrupted run: the next epochs learn "
+                            "from fresh episodes only): nicol_lift/multimodal_bidal after epochs 35, 70.")
+    assert grid.fresh_buffer_note({"nicol_lift/proprio_baseline": {"fresh_buffer_epochs": []}}) == []
