@@ -138,6 +138,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
     for name in SIZE_OPTIONS:
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=None, help="(default: the env preset's)")
+    parser.add_argument("--checkpoint-every", type=int, default=None,
+                        help="save a checkpoint every K epochs (default: the run's; a run's checkpoints on the "
+                        "nicol_slide preset are GBs, and their cadence does not make a run stale)")
     parser.add_argument("--report", action="store_true", help="train nothing: write table.md, curves.png and "
                         "curves.csv from the run folders in --out")
     parser.add_argument("--quiet", action="store_true")
@@ -147,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
-             **{k: getattr(args, k) for k in SIZE_OPTIONS if getattr(args, k) is not None}}
+             **{k: getattr(args, k) for k in (*SIZE_OPTIONS, "checkpoint_every") if getattr(args, k) is not None}}
     given["epochs"] = args.epochs or resolve(given).run.epochs
     if args.report:
         print(write_report(args.out) or f"no noise runs in {args.out}: nothing written")

@@ -13,7 +13,7 @@ from experiments.paper import protocol
 
 TINY = ["--env", "planar_reach", "--noise-segments", "q", "--agents", "proprio_baseline", "--runs", "2",
         "--epochs", "2", "--num-envs", "4", "--cycles-per-epoch", "1", "--updates-per-cycle", "2",
-        "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--quiet"]
+        "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--checkpoint-every", "1", "--quiet"]
 
 
 def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, capsys):
@@ -30,7 +30,7 @@ def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, c
     run_dir = os.path.join(out, "proprio_baseline")
     trained = load_policy(run_dir)
     assert trained.seeds == 6 and trained.config.run.seeds == 6
-    assert trained.config.train.noise_segments == "q"
+    assert trained.config.train.noise_segments == "q" and trained.config.run.checkpoint_every == 1
     np.testing.assert_array_equal(noise.run_kappas(2), np.float32([0.05, 0.05, 0.10, 0.10, 0.15, 0.15]))
     capsys.readouterr()
     assert noise.main([*TINY, "--out", out]) == 0
@@ -47,3 +47,10 @@ def test_steadiness_is_each_runs_std_over_the_window_and_short_runs_are_marked()
     np.testing.assert_allclose(protocol.steadiness(curve, 30), [np.std([0.0, 0.2, 0.4]), 0.0])
     assert noise.window_note(40, 40, 30) == " (40 epochs)"
     assert noise.window_note(19, 100, 30) == " (last 19 of 19 epochs; short run: 19 of 100 epochs)"
+
+
+def test_a_bad_checkpoint_cadence_is_refused_before_anything_trains(tmp_path, capsys):
+    out = str(tmp_path / "noise")
+    assert noise.main([*TINY, "--checkpoint-every", "0", "--out", out]) == 2
+    assert capsys.readouterr().err == "error: --checkpoint-every 0: must be a positive integer\n"
+    assert not os.path.exists(os.path.join(out, "proprio_baseline"))
