@@ -191,9 +191,11 @@ def noise_claims(noise_dir: str, stale: set[str]) -> list[Claim]:
     found, budgets = protocol.load_noise_curves(noise_dir) if os.path.isdir(noise_dir) else ({}, {})
     agents = (OURS, *BASELINES)
     gaps = [f"{a} missing" for a in agents if a not in budgets]
-    gaps += [f"{a} short ({len(found[NOISE_KAPPAS[0], a].epoch)} of {budgets[a]} epochs)" for a in agents
-             if a in budgets and len(found[NOISE_KAPPAS[0], a].epoch) < budgets[a]]
-    tasks = {report.load_run(found[NOISE_KAPPAS[0], a].run_dir)["env"] for a in agents if a in budgets}
+    gaps += [f"{a} at κ {k:.0%} missing" for a in agents if a in budgets for k in NOISE_KAPPAS if (k, a) not in found]
+    measured = {found[k, a].run_dir: found[k, a] for a in agents for k in NOISE_KAPPAS if (k, a) in found}
+    gaps += [f"{os.path.basename(run_dir)} short ({len(curve.epoch)} of {budgets[curve.label]} epochs)"
+             for run_dir, curve in measured.items() if len(curve.epoch) < budgets[curve.label]]
+    tasks = {report.load_run(run_dir)["env"] for run_dir in measured}
     measures = (
         ("steadier", "each run's std of its success over the last N epochs", protocol.steadiness, False, 1),
         ("higher", "each run's mean success over the last N epochs", report.final_per_seed, True, 0),

@@ -4,7 +4,10 @@ Trains multimodal_bidal, multimodal_baseline and proprio_baseline on nicol_slide
 observation noise s + κ·N(0, σ) on `ee_pos`, `ee_rot` and `obj_pos` (σ: each feature's
 interquartile range over the clean history; `bidal_jax/noise.py`) at κ = 5, 10 and 15 %,
 5 runs each. Per agent, the 3 κ × 5 runs are ONE compiled program: 15 vmapped runs whose κ
-is data in the training state (run i has κ_{i // 5} and its own seed key).
+is data in the training state (run i has κ_{i // 5} and its own seed key). `--kappas 0.10,0.15`
+instead trains each named κ as its own program of 5 runs into `<agent>-kappa10/` ... (about a
+third of the time each, so that one fits a machine lent for half an hour); the table reads both
+layouts, and the same κ in both is refused.
 
 Writes into `--out` (default results/noise): one run directory per agent (`<agent>/`,
 metrics.csv with `eval_success_seed0..14`), `table.md` (the paper's Table II: per κ and
@@ -31,6 +34,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -46,6 +50,7 @@ from experiments.paper.protocol import (
     LAST_N,
     PAPER,
     SEGMENTS,
+    kappa_dir,
     load_noise_curves,
     steadiness,
 )
@@ -57,20 +62,39 @@ PROG = "python -m experiments.paper.noise_robustness"
 SIZE_OPTIONS = ("num_envs", "cycles_per_epoch", "updates_per_cycle", "batch_size", "buffer_episodes", "eval_envs")
 
 
-def run_kappas(runs: int) -> np.ndarray:
-    """κ of each vmapped run: KAPPAS[i // runs]."""
-    return np.repeat(np.asarray(KAPPAS, np.float32), runs)
+def run_kappas(runs: int, kappas: Sequence[float] = KAPPAS) -> np.ndarray:
+    """κ of each vmapped run: kappas[i // runs]."""
+    return np.repeat(np.asarray(kappas, np.float32), runs)
 
 
-def agent_arm(agent: str, run_dir: str, given: dict, runs: int) -> Arm:
-    """One agent's 3 κ × `runs` program in `run_dir`: a run whose fresh state gets κ per seed."""
-    kappas = jnp.asarray(run_kappas(runs))
+def noise_arm(agent: str, run_dir: str, given: dict, kappas: np.ndarray) -> Arm:
+    """One program of len(kappas) vmapped runs of `agent` in `run_dir`: a run whose fresh state gets run i's κ
+    from `kappas`; named after its folder."""
+    kappa = jnp.asarray(kappas)
 
     def with_kappas(state):
-        return state.replace(noise=state.noise.replace(kappa=kappas))
+        return state.replace(noise=state.noise.replace(kappa=kappa))
 
-    given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(KAPPAS) * runs}
-    return Arm(agent, given, initialize=with_kappas)
+    given = {**given, "agent": agent, "run_dir": run_dir, "seeds": len(kappas)}
+    return Arm(os.path.basename(run_dir), given, initialize=with_kappas)
+
+
+def make_arms(agents: Sequence[str], kappas: Sequence[float] | None, out: str, given: dict, runs: int) -> list[Arm]:
+    """Per agent one program of 3 κ × `runs` in OUT/<agent> (`kappas` None), or one of `runs` per κ in `kappas`
+    in OUT/<agent>-kappaNN (`protocol.kappa_dir`)."""
+    if kappas is None:
+        return [noise_arm(agent, os.path.join(out, agent), given, run_kappas(runs)) for agent in agents]
+    return [noise_arm(agent, os.path.join(out, kappa_dir(agent, k)), given, run_kappas(runs, (k,)))
+            for agent in agents for k in kappas]
+
+
+def parse_kappas(text: str) -> tuple[float, ...]:
+    """`--kappas 0.10,0.15` -> the paper's κ it names, in its order; raises ConfigError for another value."""
+    named = {f"{k:.2f}": k for k in KAPPAS}
+    try:
+        return tuple(named[f"{float(item):.2f}"] for item in text.split(","))
+    except (KeyError, ValueError):
+        raise ConfigError(f"--kappas {text}: must be a comma list of {', '.join(named)}") from None
 
 
 def window_note(epochs: int, budget: int, last_n: int) -> str:
@@ -119,8 +143,9 @@ def write_report(out: str) -> str:
     if not found:
         return ""
     report.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
-    runs = {agent: run for agent in AGENTS if (run := grid.loaded(os.path.join(out, agent)))}
-    resumed = "\n".join(grid.fresh_buffer_note({agent: run["config"] for agent, run in runs.items()}))
+    folders = [name for agent in AGENTS for name in (agent, *(kappa_dir(agent, k) for k in KAPPAS))]
+    runs = {name: run for name in folders if (run := grid.loaded(os.path.join(out, name)))}
+    resumed = "\n".join(grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}))
     text = f"{table(found, budgets)}\n{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)
@@ -133,6 +158,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--env", default="nicol_slide", choices=envs_mjx.names())
     parser.add_argument("--agents", nargs="+", default=list(AGENTS), choices=AGENTS)
     parser.add_argument("--runs", type=int, default=5, help="runs (seeds) per κ")
+    parser.add_argument("--kappas", default=None,
+                        help="comma list of κ, each trained as its own program of --runs runs into "
+                        "OUT/<agent>-kappaNN (about a grid cell's time, where all three κ in one program take "
+                        "three); default: all three κ in one program per agent, in OUT/<agent>")
     parser.add_argument("--epochs", type=int, default=None, help="epochs per run (default: the env preset's)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
@@ -158,14 +187,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.runs < 1:
             raise ConfigError(f"--runs {args.runs}: must be a positive integer")
+        kappas = None if args.kappas is None else parse_kappas(args.kappas)
         multihost.initialize()
     except ConfigError as err:
         return cli.exit_code(err)
     os.makedirs(args.out, exist_ok=True)
-    print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {KAPPAS} × {args.runs} runs each "
-          f"(one program of {len(KAPPAS) * args.runs} runs per agent), {given['epochs']} epochs, into {args.out}")
+    programs = (f"one program of {len(KAPPAS) * args.runs} runs per agent" if kappas is None
+                else f"one program of {args.runs} runs per agent and κ")
+    print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {kappas or KAPPAS} × {args.runs} runs "
+          f"each ({programs}), {given['epochs']} epochs, into {args.out}")
     loop.enable_compilation_cache()
-    arms = [agent_arm(agent, os.path.join(args.out, agent), given, args.runs) for agent in args.agents]
+    arms = make_arms(args.agents, kappas, args.out, given, args.runs)
     code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)
     if code:
         return code

@@ -6,7 +6,8 @@ and `claims`, which measures the paper's claims from their run folders:
 - the learning curves (Fig. 4): `TASKS` and their epoch budget `EPOCHS`, the same for every agent;
 - noise robustness (Table II): `KAPPAS`, the window `LAST_N` per κ, `NOISE_AGENTS`, the noised
   `SEGMENTS`, the paper's figures `PAPER`; `kappa_curves` splits a run of 3 κ × R vmapped runs by
-  κ, `steadiness` is each run's std over its last N epochs, `load_noise_curves` reads them all;
+  κ (`kappa_dir` names the folder of one κ's runs alone), `steadiness` is each run's std over its
+  last N epochs, `load_noise_curves` reads them all;
 - transfer (Fig. 6): `SOURCE_ENV`, `TARGET_ENV`, `AGENT` and `THRESHOLDS`; `seed_measures` gives
   each seed's AUC and env steps to each threshold.
 """
@@ -14,6 +15,7 @@ and `claims`, which measures the paper's claims from their run folders:
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import chex
 import numpy as np
@@ -42,13 +44,20 @@ PAPER = {
 }
 
 
+def kappa_dir(agent: str, kappa: float) -> str:
+    """The folder of one agent's runs at one κ alone (`noise_robustness --kappas`), e.g. proprio_baseline-kappa10."""
+    return f"{agent}-kappa{round(kappa * 100):02d}"
+
+
+def kappa_curve(run: dict, kappa: float, seeds: slice = slice(None)) -> report.Curve:
+    """The curve of the run's `seeds` (all by default), all trained at `kappa`."""
+    return report.Curve(f"κ = {kappa:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"],
+                        run["wall_time"], run["success"][:, seeds])
+
+
 def kappa_curves(run: dict, runs: int) -> list[report.Curve]:
     """The run's curve split by κ: one curve per κ over its `runs` seeds."""
-    return [
-        report.Curve(f"κ = {k:.0%}", run["agent"], run["dir"], run["epoch"], run["env_steps"], run["wall_time"],
-                   run["success"][:, i * runs:(i + 1) * runs])
-        for i, k in enumerate(KAPPAS)
-    ]
+    return [kappa_curve(run, k, slice(i * runs, (i + 1) * runs)) for i, k in enumerate(KAPPAS)]
 
 
 def steadiness(curve: report.Curve, last_n: int) -> np.ndarray:
@@ -65,15 +74,26 @@ def budget(run: dict) -> int:
 
 
 def load_noise_curves(out: str) -> tuple[dict[tuple[float, str], report.Curve], dict[str, int]]:
-    """The noise runs in `out`: (κ, agent) -> its runs' curve (`kappa_curves`), and agent -> its epoch budget."""
+    """The noise runs in `out`: (κ, agent) -> its runs' curve, and agent -> its epoch budget (the largest of its
+    runs'). An agent's runs are one folder `<agent>` of 3 κ × R runs (`kappa_curves`), or a folder per κ
+    (`kappa_dir`), or both for different κ; the same κ in both raises `report.RunError`."""
     found, budgets = {}, {}
+
+    def add(run_dir: str, curves: Callable[[dict], list[tuple[float, report.Curve]]]) -> None:
+        if not os.path.isfile(os.path.join(run_dir, "metrics.csv")):
+            return
+        run = report.load_run(run_dir)
+        budgets[run["agent"]] = max(budgets.get(run["agent"], 0), budget(run))
+        for k, curve in curves(run):
+            if (k, run["agent"]) in found:
+                raise report.RunError(f"{run_dir}: {run['agent']} at κ {k:.0%} is also in "
+                                      f"{found[k, run['agent']].run_dir}; keep one of them")
+            found[k, run["agent"]] = curve
+
     for agent in NOISE_AGENTS:
-        run_dir = os.path.join(out, agent)
-        if os.path.isfile(os.path.join(run_dir, "metrics.csv")):
-            run = report.load_run(run_dir)
-            budgets[agent] = budget(run)
-            for k, curve in zip(KAPPAS, kappa_curves(run, run["seeds"] // len(KAPPAS))):
-                found[k, agent] = curve
+        add(os.path.join(out, agent), lambda run: list(zip(KAPPAS, kappa_curves(run, run["seeds"] // len(KAPPAS)))))
+        for k in KAPPAS:
+            add(os.path.join(out, kappa_dir(agent, k)), lambda run, k=k: [(k, kappa_curve(run, k))])
     return found, budgets
 
 

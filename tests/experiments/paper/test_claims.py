@@ -125,6 +125,13 @@ def test_noise_claims_reversed_when_a_baseline_is_the_steady_one_and_not_measure
         "not measured: multimodal_bidal short (19 of 100 epochs)")
     assert claims.noise_claims(str(tmp_path / "none"), set())[0].verdict.startswith(
         "not measured: multimodal_bidal missing")
+    per_kappa = tmp_path / "per-kappa"  # one κ's runs alone (`noise_robustness --kappas`), the other κ not yet
+    for agent in protocol.NOISE_AGENTS:
+        fake_run(str(per_kappa / protocol.kappa_dir(agent, 0.10)), "nicol_slide", rows([0.5] * 5, epochs=19), None,
+                 agent)
+    assert claims.noise_claims(str(per_kappa), set())[0].verdict.startswith(
+        "not measured: multimodal_bidal at κ 15% missing; multimodal_baseline at κ 15% missing; "
+        "proprio_baseline at κ 15% missing (+3 more)")  # the 3 more: each κ 10 % folder is short, 19 of 100 epochs
 
 
 def test_learning_claims_not_reproduced_when_the_visual_baseline_learns_a_task(tmp_path, fake_run):

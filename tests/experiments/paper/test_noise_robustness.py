@@ -5,11 +5,13 @@ cell, resumable (a finished agent is skipped), `--report` from the run folders a
 import os
 
 import numpy as np
+import pytest
 
-from bidal_jax.run.policy import load_policy
+from bidal_jax.run.policy import load_noise, load_policy
 from experiments import report
 from experiments.paper import noise_robustness as noise
 from experiments.paper import protocol
+from tests.conftest import write_fake_run
 
 TINY = ["--env", "planar_reach", "--noise-segments", "q", "--agents", "proprio_baseline", "--runs", "2",
         "--epochs", "2", "--num-envs", "4", "--cycles-per-epoch", "1", "--updates-per-cycle", "2",
@@ -54,3 +56,34 @@ def test_a_bad_checkpoint_cadence_is_refused_before_anything_trains(tmp_path, ca
     assert noise.main([*TINY, "--checkpoint-every", "0", "--out", out]) == 2
     assert capsys.readouterr().err == "error: --checkpoint-every 0: must be a positive integer\n"
     assert not os.path.exists(os.path.join(out, "proprio_baseline"))
+
+
+def test_one_kappa_alone_is_its_own_program_and_folder_and_joins_the_table(tmp_path):
+    out = str(tmp_path / "noise")
+    assert noise.main([*TINY, "--kappas", "0.10", "--out", out]) == 0
+    run_dir = os.path.join(out, "proprio_baseline-kappa10")
+    trained = load_policy(run_dir)
+    assert trained.seeds == 2
+    np.testing.assert_allclose(np.asarray(load_noise(run_dir, trained).kappa), [0.10, 0.10])
+    rows = {}  # the first table's rows (the steadiness table below repeats the κ column)
+    for line in open(os.path.join(out, "table.md")):
+        rows.setdefault(line.split(" | ")[0], line)
+    assert rows["| 10%"].count("(last 2 of 2 epochs; short run: 2 of 40 epochs)") == 1
+    assert rows["| 5%"].startswith("| 5% | 5 | — ")  # the other κ are not trained
+
+
+def test_a_kappa_in_both_layouts_is_refused(tmp_path):
+    out = str(tmp_path / "noise")
+    write_fake_run(os.path.join(out, "proprio_baseline"), "planar_reach", [[0.5] * 6], None, agent="proprio_baseline")
+    write_fake_run(os.path.join(out, "proprio_baseline-kappa15"), "planar_reach", [[0.5] * 2], None,
+                   agent="proprio_baseline")
+    with pytest.raises(report.RunError, match="proprio_baseline at κ 15% is also in"):
+        protocol.load_noise_curves(out)
+    os.rename(os.path.join(out, "proprio_baseline"), os.path.join(out, "old"))
+    found, budgets = protocol.load_noise_curves(out)
+    assert list(found) == [(0.15, "proprio_baseline")] and found[0.15, "proprio_baseline"].success.shape == (1, 2)
+
+
+def test_kappas_other_than_the_papers_are_refused(capsys):
+    assert noise.main([*TINY, "--kappas", "0.10,0.2"]) == 2
+    assert capsys.readouterr().err == "error: --kappas 0.10,0.2: must be a comma list of 0.05, 0.10, 0.15\n"
