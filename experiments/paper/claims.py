@@ -330,7 +330,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cli.exit_code(err)
     options = [f"--curves {args.curves}", f"--noise {args.noise}", f"--transfer {args.transfer}", f"--out {args.out}"]
     options += [f"--stale {args.stale}"] * bool(args.stale) + [f"--last-n {args.last_n}"] * (args.last_n != 10)
-    text = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n, " ".join([PROG, *options]))
+    try:
+        text = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n, " ".join([PROG, *options]))
+    except report.RunError as err:  # e.g. a run folder unreadable, or a noise κ in two folders
+        return cli.exit_code(err)
     with open(args.out, "w") as f:
         f.write(text)
     print(f"{text}\nwritten to {args.out}")

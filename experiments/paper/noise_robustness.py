@@ -182,7 +182,10 @@ def main(argv: list[str] | None = None) -> int:
              **{k: getattr(args, k) for k in (*SIZE_OPTIONS, "checkpoint_every") if getattr(args, k) is not None}}
     given["epochs"] = args.epochs or resolve(given).run.epochs
     if args.report:
-        print(write_report(args.out) or f"no noise runs in {args.out}: nothing written")
+        try:
+            print(write_report(args.out) or f"no noise runs in {args.out}: nothing written")
+        except report.RunError as err:  # e.g. a κ in both layouts
+            return cli.exit_code(err)
         return 0
     try:
         if args.runs < 1:

@@ -72,13 +72,15 @@ def test_one_kappa_alone_is_its_own_program_and_folder_and_joins_the_table(tmp_p
     assert rows["| 5%"].startswith("| 5% | 5 | — ")  # the other κ are not trained
 
 
-def test_a_kappa_in_both_layouts_is_refused(tmp_path):
+def test_a_kappa_in_both_layouts_is_refused(tmp_path, capsys):
     out = str(tmp_path / "noise")
     write_fake_run(os.path.join(out, "proprio_baseline"), "planar_reach", [[0.5] * 6], None, agent="proprio_baseline")
     write_fake_run(os.path.join(out, "proprio_baseline-kappa15"), "planar_reach", [[0.5] * 2], None,
                    agent="proprio_baseline")
     with pytest.raises(report.RunError, match="proprio_baseline at κ 15% is also in"):
         protocol.load_noise_curves(out)
+    assert noise.main(["--report", "--out", out]) == 2  # one line, no traceback
+    assert capsys.readouterr().err.startswith(f"error: {os.path.join(out, 'proprio_baseline-kappa15')}: ")
     os.rename(os.path.join(out, "proprio_baseline"), os.path.join(out, "old"))
     found, budgets = protocol.load_noise_curves(out)
     assert list(found) == [(0.15, "proprio_baseline")] and found[0.15, "proprio_baseline"].success.shape == (1, 2)
