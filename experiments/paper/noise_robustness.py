@@ -191,6 +191,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.runs < 1:
             raise ConfigError(f"--runs {args.runs}: must be a positive integer")
         kappas = None if args.kappas is None else parse_kappas(args.kappas)
+        for agent in args.agents if kappas else ():
+            if os.path.isfile(os.path.join(args.out, agent, "metrics.csv")):
+                raise ConfigError(f"--kappas {args.kappas}: {os.path.join(args.out, agent)} already holds every κ "
+                                  f"of {agent}; train them in another --out")
         multihost.initialize()
     except ConfigError as err:
         return cli.exit_code(err)

@@ -81,6 +81,9 @@ def test_a_kappa_in_both_layouts_is_refused(tmp_path, capsys):
         protocol.load_noise_curves(out)
     assert noise.main(["--report", "--out", out]) == 2  # one line, no traceback
     assert capsys.readouterr().err.startswith(f"error: {os.path.join(out, 'proprio_baseline-kappa15')}: ")
+    assert noise.main([*TINY, "--kappas", "0.05", "--out", out]) == 2  # refused before training a κ again
+    assert capsys.readouterr().err == (f"error: --kappas 0.05: {os.path.join(out, 'proprio_baseline')} already "
+                                       "holds every κ of proprio_baseline; train them in another --out\n")
     os.rename(os.path.join(out, "proprio_baseline"), os.path.join(out, "old"))
     found, budgets = protocol.load_noise_curves(out)
     assert list(found) == [(0.15, "proprio_baseline")] and found[0.15, "proprio_baseline"].success.shape == (1, 2)
