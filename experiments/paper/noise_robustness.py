@@ -143,9 +143,9 @@ def write_report(out: str) -> str:
     if not found:
         return ""
     report.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
-    folders = [name for agent in AGENTS for name in (agent, *(kappa_dir(agent, k) for k in KAPPAS))]
-    runs = {name: run for name in folders if (run := grid.loaded(os.path.join(out, name)))}
-    resumed = "\n".join(grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}))
+    run_dirs = dict.fromkeys(curve.run_dir for curve in found.values())  # the folders read, in the table's order
+    configs = {os.path.basename(d): grid.loaded(d)["config"] for d in run_dirs}
+    resumed = "\n".join(grid.fresh_buffer_note(configs))
     text = f"{table(found, budgets)}\n{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)

@@ -2,6 +2,7 @@
 3 κ × runs per agent, the table beside the paper's with short runs marked and the steadiness of each
 cell, resumable (a finished agent is skipped), `--report` from the run folders alone."""
 
+import json
 import os
 
 import numpy as np
@@ -87,6 +88,11 @@ def test_a_kappa_in_both_layouts_is_refused(tmp_path, capsys):
     os.rename(os.path.join(out, "proprio_baseline"), os.path.join(out, "old"))
     found, budgets = protocol.load_noise_curves(out)
     assert list(found) == [(0.15, "proprio_baseline")] and found[0.15, "proprio_baseline"].success.shape == (1, 2)
+    config_path = os.path.join(out, "proprio_baseline-kappa15", "config.json")  # resumed elsewhere after epoch 1
+    config = json.load(open(config_path))
+    json.dump({**config, "fresh_buffer_epochs": [1]}, open(config_path, "w"))
+    assert "empty replay buffer" in noise.write_report(out) and "proprio_baseline-kappa15 after epoch 1." in \
+        open(os.path.join(out, "table.md")).read()
 
 
 def test_kappas_other_than_the_papers_are_refused(capsys):
