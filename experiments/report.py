@@ -85,7 +85,7 @@ def load_run(run_dir: str) -> dict:
 
 
 def physics_of(config: dict) -> list[str]:
-    """The physics fingerprints a run's config.json records (`bidal_jax.run.loop.physics_record`); [] if none."""
+    """The physics fingerprints a run's config.json records (`bidal_jax.run.loop.history_record`); [] if none."""
     physics = config.get("physics")
     return [str(p) for p in physics] if isinstance(physics, list) else []
 

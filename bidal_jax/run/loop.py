@@ -146,11 +146,18 @@ def _recorded(run_dir: str, key: str, resume: bool) -> list:
     return []
 
 
-def physics_record(run_dir: str, physics_id: str, resume: bool) -> list[str]:
-    """config.json's "physics": the fingerprints (`Env.physics_id`) of the physics the run has trained on, in order:
-    a resumed run keeps its earlier ones and adds today's if it differs (a run resumed after a model change)."""
-    earlier = _recorded(run_dir, "physics", resume)
-    return earlier if earlier[-1:] == [physics_id] else [*earlier, physics_id]
+def history_record(run_dir: str, key: str, value: str, resume: bool) -> list[str]:
+    """config.json's list `key`, in order: a resumed run keeps its earlier values and adds `value` if it differs
+    from the last. Keys: "physics", the fingerprints (`Env.physics_id`) of the physics the run has trained on (a
+    run resumed after a model change records two); "hardware", the machines its processes ran on (`hardware`)."""
+    earlier = _recorded(run_dir, key, resume)
+    return earlier if earlier[-1:] == [value] else [*earlier, value]
+
+
+def hardware() -> str:
+    """The machine this process trains on, as config.json's "hardware" records it: "<devices> × <device kind>",
+    e.g. "1 × NVIDIA H100 80GB HBM3" or "1 × cpu" (all processes' devices, with several hosts)."""
+    return f"{jax.device_count()} × {jax.devices()[0].device_kind}"
 
 
 def fresh_buffer_record(run_dir: str, epoch: int, resume: bool, fresh_buffer: bool) -> list[int]:
@@ -175,7 +182,8 @@ def _train(
         epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize, fresh_buffer=fresh_buffer)
         cfg = {
             **config.to_dict(),
-            "physics": physics_record(run.run_dir, env.physics_id, resume),
+            "physics": history_record(run.run_dir, "physics", env.physics_id, resume),
+            "hardware": history_record(run.run_dir, "hardware", hardware(), resume),
             "fresh_buffer_epochs": fresh_buffer_record(run.run_dir, start_epoch, resume, fresh_buffer),
         }
         saved = start_epoch if resume else None

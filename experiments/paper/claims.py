@@ -1,7 +1,7 @@
 """The paper's three claims, measured on our run folders, each with a verdict by a stated rule:
 
     python -m experiments.paper.claims --curves results/curves --noise results/noise --transfer results/transfer
-        --out results/claims.md [--stale TASK[,TASK]] [--last-n 10]
+        --out results/claims.md [--readme README.md] [--stale TASK[,TASK]] [--last-n 10]
 
 (a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline
     none; multimodal BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
@@ -25,7 +25,14 @@ the task's model today (config.json records the fingerprints of the physics a ru
 `envs_mjx.base.Env.physics_id`; runs older than that record none), and runs of a task named by `--stale`,
 get their verdict qualified "measured on ... runs not recorded on today's physics".
 
-Exit codes: 0 written; 2 bad option (one `error: ...` line).
+Time: the file ends with what the runs on today's physics took, per experiment and per machine (config.json's
+"hardware"; "not recorded" for runs older than that record): the sum of each run's last `wall_time_with_compile`.
+
+`--readme FILE` also writes the table (without the rules), the time and the command into FILE, replacing the
+text from its line `README_START` to its line `README_END`; a FILE without them is refused.
+
+Exit codes: 0 written; 2 bad option, an unreadable run folder, or a --readme without the block (one `error: ...`
+line; nothing written).
 """
 
 from __future__ import annotations
@@ -39,6 +46,7 @@ from typing import Sequence
 import numpy as np
 
 from bidal_jax.config import AGENTS
+from bidal_jax.run import metrics
 from experiments import cli, report, stats
 from experiments.paper import grid, protocol
 
@@ -50,6 +58,8 @@ NOISE_KAPPAS = (0.10, 0.15)
 BASELINES = ("multimodal_baseline", "proprio_baseline")
 FAVOURS, AGAINST, UNCLEAR = "favours", "against", "unclear"
 NOT_MEASURED = "not measured"
+README_START = "<!-- claims: written by experiments.paper.claims --readme; edits up to the end mark are lost -->"
+README_END = "<!-- end of claims -->"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -260,34 +270,88 @@ def claims_table(rows: Sequence[Claim]) -> str:
                                  [[r.claim, r.ours, r.paper, r.verdict, r.rule] for r in rows])
 
 
-def other_physics(folders: Sequence[str]) -> dict[str, int]:
-    """Task -> how many runs below `folders` trained on other physics than its env steps today (`grid.other_physics`:
-    a run whose config.json records fingerprints, `Env.physics_id`, other than today's alone, or none: runs older
-    than the record). Tasks no longer registered are left out."""
+def runs_below(folder: str) -> list[dict]:
+    """Every readable run folder below `folder` (`report.load_run`), in walking order."""
     runs = []
-    for folder in folders:
-        for where, _, files in os.walk(folder):
-            if "config.json" not in files:
-                continue
-            try:
-                runs.append(report.load_run(where))
-            except report.RunError:
-                continue  # not a run the claims read (they say why where they need it)
+    for where, _, files in sorted(os.walk(folder)):
+        if "config.json" not in files:
+            continue
+        try:
+            runs.append(report.load_run(where))
+        except report.RunError:
+            continue  # not a run the claims read (they say why where they need it)
+    return runs
+
+
+def on_other_physics(runs: Sequence[dict]) -> list[dict]:
+    """The runs that trained on other physics than their env steps today (`grid.other_physics`: a run whose
+    config.json records fingerprints, `Env.physics_id`, other than today's alone, or none: runs older than the
+    record). Runs of tasks no longer registered are left out."""
     today = grid.physics_today(run["env"] for run in runs)
+    return [run for run in runs if grid.other_physics(run["config"], today[run["env"]])]
+
+
+def other_physics(folder: str) -> dict[str, int]:
+    """Task -> how many runs below `folder` trained on other physics than its env steps today (`on_other_physics`)."""
     counts: dict[str, int] = {}
-    for run in runs:
-        if grid.other_physics(run["config"], today[run["env"]]):
-            counts[run["env"]] = counts.get(run["env"], 0) + 1
+    for run in on_other_physics(runs_below(folder)):
+        counts[run["env"]] = counts.get(run["env"], 0) + 1
     return counts
 
 
+def counted(tasks: dict[str, int]) -> str:
+    """"nicol_slide (1 run), nicol_lift (2 runs)" for task -> count."""
+    return ", ".join(f"{task} ({count(n, 'run')})" for task, n in sorted(tasks.items()))
+
+
+def hours(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h"
+
+
+def count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def time_report(folders: dict[str, str]) -> str:
+    """What the runs behind the claims took: per experiment (name -> folder) and per machine, the sum of each run's
+    last `wall_time_with_compile` (training and compiling, summed over its processes; `wall_time`, compiling not
+    counted, where metrics.csv predates that column), for the runs on today's physics; runs on other physics apart."""
+    per_experiment, per_machine, other, without_compile = [], {}, 0.0, 0
+    for name, folder in folders.items():
+        runs = runs_below(folder)
+        stale = {run["dir"] for run in on_other_physics(runs)}
+        total = 0.0
+        for run in runs:
+            timed, with_compile = report.with_compile_times(run)
+            seconds = float(timed["wall_time"][-1])
+            if run["dir"] in stale:
+                other += seconds
+                continue
+            total += seconds
+            without_compile += not with_compile
+            machines = run["config"].get("hardware") or ["not recorded"]
+            key = " then ".join(machines)
+            per_machine[key] = per_machine.get(key, 0.0) + seconds
+        per_experiment.append(f"{name} {hours(total)} ({count(len(runs) - len(stale), 'run')})")
+    machines = "; ".join(f"{machine}: {hours(seconds)}" for machine, seconds in sorted(per_machine.items()))
+    return (f"Time of the runs behind these claims, on today's physics: {', '.join(per_experiment)}; in all "
+            f"{hours(sum(per_machine.values()))} (per machine, as config.json records it: {machines or 'none'}). "
+            "Each run counts its last `wall_time_with_compile`: training and compiling, summed over its processes"
+            + (f"; runs older than that column ({without_compile}) count their `wall_time`, compiling not counted"
+               if without_compile else "")
+            + f". Runs on other physics, not counted: {hours(other)}.")
+
+
 def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set[str], last_n: int,
-                  command: str) -> str:
-    other = other_physics([curves_dir, noise_dir, transfer_dir])
-    named, stale = stale, stale | set(other)
-    rows = [*learning_claims(load_grid(curves_dir), last_n, stale), *noise_claims(noise_dir, stale),
-            *transfer_claims(transfer_dir, stale)]
-    return "\n".join([
+                  command: str) -> tuple[str, str]:
+    """(results/claims.md's text, the README's block: `readme_block`)."""
+    other = {folder: other_physics(folder) for folder in (curves_dir, noise_dir, transfer_dir)}
+    rows = [*learning_claims(load_grid(curves_dir), last_n, stale | set(other[curves_dir])),
+            *noise_claims(noise_dir, stale | set(other[noise_dir])),
+            *transfer_claims(transfer_dir, stale | set(other[transfer_dir]))]
+    found = "; ".join(f"{folder}: {counted(tasks)}" for folder, tasks in other.items() if tasks)
+    times = time_report({"learning curves": curves_dir, "noise": noise_dir, "transfer": transfer_dir})
+    text = "\n".join([
         "# The paper's three claims, measured",
         "",
         f"From the run folders {curves_dir}, {noise_dir} and {transfer_dir}. Intervals: 95 %, a Student-t "
@@ -298,13 +362,39 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set
         claims_table(rows),
         "",
         *([f"Runs not recorded on today's physics (their config.json records another fingerprint of the model, "
-           f"`Env.physics_id`, or, older than that record, none): "
-           f"{', '.join(f'{t} ({n} runs)' for t, n in sorted(other.items()))}.", ""]
-          if other else []),
-        *([f"Named stale (--stale): {', '.join(sorted(named))}.", ""] if named else []),
+           f"`Env.physics_id`, or, older than that record, none; they qualify the verdicts of their folder's "
+           f"claims): {found}.", ""] if found else []),
+        *([f"Named stale (--stale): {', '.join(sorted(stale))}.", ""] if stale else []),
+        times,
+        "",
         f"Regenerate: `{command}`",
         "",
     ])
+    return text, readme_block(rows, times, command)
+
+
+def readme_block(rows: Sequence[Claim], times: str, command: str) -> str:
+    """The README's copy of the claims: the table without its rules, the time line and the command, between
+    `README_START` and `README_END`."""
+    table = report.markdown_table(["claim", "ours (95 % interval)", "paper", "verdict"],
+                                  [[r.claim, r.ours, r.paper, r.verdict] for r in rows])
+    return "\n".join([README_START, table, "", times, "", f"Regenerate: `{command}` (the rules of the verdicts "
+                      "are in the file it writes)", README_END])
+
+
+def write_readme(path: str, block: str) -> None:
+    """Replace the text from `README_START` to `README_END` in the file `path` by `block`; ValueError (nothing
+    written) when the file lacks them."""
+    try:
+        with open(path) as f:
+            text = f.read()
+    except OSError as err:
+        raise ValueError(f"--readme {path}: cannot read it ({err.strerror})") from err
+    start, end = text.find(README_START), text.find(README_END)
+    if start < 0 or end < start:
+        raise ValueError(f"--readme {path}: no claims block to replace; it needs the line {README_START!r} and, "
+                         f"after it, the line {README_END!r}")
+    metrics.write_atomic(path, text[:start] + block + text[end + len(README_END):])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -316,6 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--stale", default="", help="comma list of tasks whose runs to count as made on other "
                         "physics than today's besides those whose config.json says so (their verdicts say so)")
     parser.add_argument("--last-n", type=int, default=10, help="epochs of the curves' final success")
+    parser.add_argument("--readme", default=None, help="also write the claims (without their rules) into this "
+                        "file, between its lines README_START and README_END (e.g. README.md)")
     return parser
 
 
@@ -330,13 +422,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cli.exit_code(err)
     options = [f"--curves {args.curves}", f"--noise {args.noise}", f"--transfer {args.transfer}", f"--out {args.out}"]
     options += [f"--stale {args.stale}"] * bool(args.stale) + [f"--last-n {args.last_n}"] * (args.last_n != 10)
+    options += [f"--readme {args.readme}"] * bool(args.readme)
     try:
-        text = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n, " ".join([PROG, *options]))
-    except report.RunError as err:  # e.g. a run folder unreadable, or a noise κ in two folders
+        text, block = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n,
+                                    " ".join([PROG, *options]))
+        if args.readme:
+            write_readme(args.readme, block)
+    except (report.RunError, ValueError) as err:  # e.g. a run folder unreadable, a noise κ in two folders, no block
         return cli.exit_code(err)
-    with open(args.out, "w") as f:
-        f.write(text)
-    print(f"{text}\nwritten to {args.out}")
+    metrics.write_atomic(args.out, text)
+    print(f"{text}\nwritten to {args.out}" + (f" and {args.readme}" if args.readme else ""))
     return 0
 
 

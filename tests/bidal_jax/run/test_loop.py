@@ -63,17 +63,20 @@ def test_stopped_and_resumed_run_is_bit_identical(tmp_path, straight):
         f.write(f"{EPOCHS // 2 + 1},{last}\n{EPOCHS // 2 + 2},0.5")
     assert run.main(["--resume", "--run-dir", str(run_dir), "--epochs", str(EPOCHS), "--quiet"]) == 0
     assert_same_run(run_dir, straight)
-    # config.json records the physics the run trained on, once: the resumed part ran on the same
+    # config.json records the physics and the machine the run trained on, once: the resumed part ran on the same
     physics = envs_mjx.make("planar_reach", render=False).physics_id
-    assert json.loads((run_dir / "config.json").read_text())["physics"] == [physics]
+    recorded = json.loads((run_dir / "config.json").read_text())
+    assert recorded["physics"] == [physics]
+    assert recorded["hardware"] == [f"{jax.device_count()} × {jax.devices()[0].device_kind}"]
 
 
-def test_physics_record_keeps_a_resumed_runs_history(tmp_path):
-    assert loop.physics_record(str(tmp_path), "new", resume=True) == ["new"]  # no config.json: unknown history
-    (tmp_path / "config.json").write_text(json.dumps({"physics": ["old"]}))
-    assert loop.physics_record(str(tmp_path), "new", resume=True) == ["old", "new"]
-    assert loop.physics_record(str(tmp_path), "old", resume=True) == ["old"]
-    assert loop.physics_record(str(tmp_path), "new", resume=False) == ["new"]  # a fresh start: its own physics
+@pytest.mark.parametrize("key", ["physics", "hardware"])
+def test_history_record_keeps_a_resumed_runs_history(tmp_path, key):
+    assert loop.history_record(str(tmp_path), key, "new", resume=True) == ["new"]  # no config.json: unknown history
+    (tmp_path / "config.json").write_text(json.dumps({key: ["old"]}))
+    assert loop.history_record(str(tmp_path), key, "new", resume=True) == ["old", "new"]
+    assert loop.history_record(str(tmp_path), key, "old", resume=True) == ["old"]
+    assert loop.history_record(str(tmp_path), key, "new", resume=False) == ["new"]  # a fresh start: its own
 
 
 def test_physics_id_follows_the_model_options():

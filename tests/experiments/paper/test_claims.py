@@ -2,6 +2,7 @@
 (reproduced, not reproduced, reversed, not measured) and the stale-task qualifier."""
 
 import functools
+import json
 import shutil
 import types
 
@@ -148,15 +149,54 @@ def test_runs_on_other_or_unrecorded_physics_qualify_their_claims(tmp_path, fake
     write_grid(fake_run, tmp_path / "curves")
     write_noise(fake_run, tmp_path / "noise")
     write_transfer(fake_run, tmp_path / "transfer", 0.1, 0.02)
-    assert claims.other_physics([str(tmp_path)]) == {}
+    assert all(claims.other_physics(str(tmp_path / name)) == {} for name in ("curves", "noise", "transfer"))
     # the scratch arm was made before its physics was recorded, the transfer arm resumed after a model change
     shutil.rmtree(tmp_path / "transfer")
     write_fake_run(str(tmp_path / "transfer" / "scratch"), "nicol_lift_reduced", rising(0.02), None)
     fake_run(str(tmp_path / "transfer" / "transfer"), "nicol_lift_reduced", rising(0.1), None, physics=["old", TODAY])
-    assert claims.other_physics([str(tmp_path)]) == {"nicol_lift_reduced": 2}
+    assert claims.other_physics(str(tmp_path / "transfer")) == {"nicol_lift_reduced": 2}
     out = str(tmp_path / "claims.md")
     assert claims.main(["--curves", str(tmp_path / "curves"), "--noise", str(tmp_path / "noise"), "--transfer",
                         str(tmp_path / "transfer"), "--out", out]) == 0
     text = open(out).read()
     assert "(c) " in text and "reproduced; measured on nicol_lift_reduced runs not recorded on today's physics" in text
     assert "Runs not recorded on today's physics" in text and "nicol_lift_reduced (2 runs)" in text
+    # a folder's stale runs qualify its own claims only: (a) and (b) read other folders
+    assert not any("today's physics" in line for line in text.splitlines() if line.startswith(("| (a)", "| (b)")))
+
+
+def test_time_report_sums_the_runs_on_todays_physics_per_experiment_and_machine(tmp_path, fake_run):
+    timed = tmp_path / "curves" / "nicol_slide" / "multimodal_bidal"
+    fake_run(str(timed), "nicol_slide", rows([0.9] * 5), None, compile_seconds=2600.0)  # 1,000 + 2,600 s
+    config = json.loads((timed / "config.json").read_text())
+    (timed / "config.json").write_text(json.dumps({**config, "hardware": ["1 × GPU", "2 × GPU"]}))
+    fake_run(str(tmp_path / "curves" / "nicol_slide" / "proprio_baseline"), "nicol_slide", rows([0.9] * 5), None,
+             "proprio_baseline")  # 1,000 s, compiling not counted
+    # physics not recorded: not counted
+    write_fake_run(str(tmp_path / "transfer" / "scratch"), "nicol_lift_reduced", rising(0.02), None)
+    (tmp_path / "noise").mkdir()
+    text = claims.time_report({name: str(tmp_path / name) for name in ("curves", "noise", "transfer")})
+    assert "physics: curves 1.3 h (2 runs), noise 0.0 h (0 runs), transfer 0.0 h (0 runs); in all 1.3 h" in text
+    assert "(per machine, as config.json records it: 1 × GPU then 2 × GPU: 1.0 h; not recorded: 0.3 h)" in text
+    assert "runs older than that column (1) count their `wall_time`" in text
+    assert text.endswith("Runs on other physics, not counted: 0.3 h.")
+
+
+def test_readme_block_is_replaced_and_a_readme_without_one_is_refused(tmp_path, fake_run, capsys):
+    write_transfer(fake_run, tmp_path / "transfer", 0.1, 0.02)
+    readme, out = tmp_path / "README.md", str(tmp_path / "claims.md")
+    readme.write_text(f"# title\n\n{claims.README_START}\nold table\n{claims.README_END}\n\nafter\n")
+    argv = ["--curves", str(tmp_path / "curves"), "--noise", str(tmp_path / "noise"), "--transfer",
+            str(tmp_path / "transfer"), "--out", out, "--readme", str(readme)]
+    for _ in range(2):  # a second run replaces its own block
+        assert claims.main(argv) == 0
+    text = readme.read_text()
+    assert text.startswith(f"# title\n\n{claims.README_START}\n| claim | ours (95 % interval) | paper | verdict |")
+    assert text.endswith(f"{claims.README_END}\n\nafter\n") and "old table" not in text
+    assert text.count(claims.README_START) == 1 and "| (c) reduced lift learns faster" in text
+    assert "Time of the runs behind these claims" in text and f"--readme {readme}" in text
+    readme.write_text("# no block\n")
+    (tmp_path / "claims.md").unlink()
+    assert claims.main(argv) == 2
+    assert "no claims block to replace" in capsys.readouterr().err
+    assert readme.read_text() == "# no block\n" and not (tmp_path / "claims.md").exists()
