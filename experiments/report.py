@@ -98,6 +98,13 @@ def with_compile_times(run: dict) -> tuple[dict, bool]:
     return {**run, "wall_time": run[WITH_COMPILE]}, True
 
 
+def last_time(run: dict) -> tuple[float, bool]:
+    """(The run's last time, whether it counts its compilation): its last `wall_time_with_compile`, or its last
+    `wall_time` where metrics.csv predates that column (`with_compile_times`)."""
+    timed, with_compile = with_compile_times(run)
+    return float(timed["wall_time"][-1]), with_compile
+
+
 @dataclasses.dataclass(frozen=True)
 class Curve:
     """One line of the plot: a run's per-seed success [E, S] with its x axes [E]."""

@@ -291,10 +291,10 @@ def on_other_physics(runs: Sequence[dict]) -> list[dict]:
     return [run for run in runs if grid.other_physics(run["config"], today[run["env"]])]
 
 
-def other_physics(runs: Sequence[dict]) -> dict[str, int]:
-    """Task -> how many of `runs` trained on other physics than its env steps today (`on_other_physics`)."""
+def per_task(runs: Sequence[dict]) -> dict[str, int]:
+    """Task -> how many of `runs` are of it."""
     counts: dict[str, int] = {}
-    for run in on_other_physics(runs):
+    for run in runs:
         counts[run["env"]] = counts.get(run["env"], 0) + 1
     return counts
 
@@ -312,18 +312,17 @@ def count(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
-def time_report(experiments: dict[str, list[dict]]) -> str:
+def time_report(experiments: dict[str, list[dict]], old: set[str]) -> str:
     """What the runs behind the claims took: per experiment (name -> its runs, `runs_below`) and per machine, the
     sum of each run's last `wall_time_with_compile` (training and compiling, summed over its processes; `wall_time`,
-    compiling not counted, where metrics.csv predates that column), for the runs on today's physics; runs on other
-    physics apart."""
+    compiling not counted, where metrics.csv predates that column: `report.last_time`), for the runs on today's
+    physics; the runs whose folders are in `old` (on other physics: `on_other_physics`) apart."""
     per_experiment, per_machine, other, without_compile = [], {}, 0.0, 0
     for name, runs in experiments.items():
-        stale = {run["dir"] for run in on_other_physics(runs)}
+        stale = {run["dir"] for run in runs} & old
         total = 0.0
         for run in runs:
-            timed, with_compile = report.with_compile_times(run)
-            seconds = float(timed["wall_time"][-1])
+            seconds, with_compile = report.last_time(run)
             if run["dir"] in stale:
                 other += seconds
                 continue
@@ -346,13 +345,14 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set
                   command: str) -> tuple[str, str]:
     """(results/claims.md's text, the README's block: `readme_block`)."""
     runs = {folder: runs_below(folder) for folder in (curves_dir, noise_dir, transfer_dir)}
-    other = {folder: other_physics(found) for folder, found in runs.items()}
+    old = {run["dir"] for run in on_other_physics([run for found in runs.values() for run in found])}
+    other = {folder: per_task([run for run in found if run["dir"] in old]) for folder, found in runs.items()}
     rows = [*learning_claims(load_grid(curves_dir), last_n, stale | set(other[curves_dir])),
             *noise_claims(noise_dir, stale | set(other[noise_dir])),
             *transfer_claims(transfer_dir, stale | set(other[transfer_dir]))]
     found = "; ".join(f"{folder}: {counted(tasks)}" for folder, tasks in other.items() if tasks)
     times = time_report({"learning curves": runs[curves_dir], "noise": runs[noise_dir],
-                         "transfer": runs[transfer_dir]})
+                         "transfer": runs[transfer_dir]}, old)
     text = "\n".join([
         "# The paper's three claims, measured",
         "",

@@ -179,9 +179,9 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
 
 
 def seconds(run: dict) -> str:
-    """The run's last time with its compilation (`report.with_compile_times`), or its `wall_time` marked "*"."""
-    timed, with_compile = report.with_compile_times(run)
-    return f"{timed['wall_time'][-1]:,.0f} s" + ("" if with_compile else "*")
+    """The run's last time with its compilation (`report.last_time`), or its `wall_time` marked "*"."""
+    time, with_compile = report.last_time(run)
+    return f"{time:,.0f} s" + ("" if with_compile else "*")
 
 
 def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
@@ -260,7 +260,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
     stale = [arm.name for arm in arms
              if arm.name in runs and grid.stale_config(runs[arm.name]["config"], arm, today[arm.given["env"]])]
     report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
-    total = sum(float(report.with_compile_times(r)[0]["wall_time"][-1]) for r in runs.values())
+    total = sum(report.last_time(r)[0] for r in runs.values())
     return "\n".join([
         f"# {title}",
         "",

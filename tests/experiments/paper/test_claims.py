@@ -149,12 +149,13 @@ def test_runs_on_other_or_unrecorded_physics_qualify_their_claims(tmp_path, fake
     write_grid(fake_run, tmp_path / "curves")
     write_noise(fake_run, tmp_path / "noise")
     write_transfer(fake_run, tmp_path / "transfer", 0.1, 0.02)
-    assert claims.other_physics(claims.runs_below(str(tmp_path))) == {}
+    assert claims.per_task(claims.on_other_physics(claims.runs_below(str(tmp_path)))) == {}
     # the scratch arm was made before its physics was recorded, the transfer arm resumed after a model change
     shutil.rmtree(tmp_path / "transfer")
     write_fake_run(str(tmp_path / "transfer" / "scratch"), "nicol_lift_reduced", rising(0.02), None)
     fake_run(str(tmp_path / "transfer" / "transfer"), "nicol_lift_reduced", rising(0.1), None, physics=["old", TODAY])
-    assert claims.other_physics(claims.runs_below(str(tmp_path / "transfer"))) == {"nicol_lift_reduced": 2}
+    assert claims.per_task(claims.on_other_physics(claims.runs_below(str(tmp_path / "transfer")))) == {
+        "nicol_lift_reduced": 2}
     out = str(tmp_path / "claims.md")
     assert claims.main(["--curves", str(tmp_path / "curves"), "--noise", str(tmp_path / "noise"), "--transfer",
                         str(tmp_path / "transfer"), "--out", out]) == 0
@@ -176,7 +177,9 @@ def test_time_report_sums_the_runs_on_todays_physics_per_experiment_and_machine(
     write_fake_run(str(tmp_path / "transfer" / "scratch"), "nicol_lift_reduced", rising(0.02), None)
     (tmp_path / "noise").mkdir()
     names = ("curves", "noise", "transfer")
-    text = claims.time_report({name: claims.runs_below(str(tmp_path / name)) for name in names})
+    runs = {name: claims.runs_below(str(tmp_path / name)) for name in names}
+    old = {run["dir"] for run in claims.on_other_physics([run for found in runs.values() for run in found])}
+    text = claims.time_report(runs, old)
     assert "physics: curves 1.3 h (2 runs), noise 0.0 h (0 runs), transfer 0.0 h (0 runs); in all 1.3 h" in text
     assert "(per machine, as config.json records it: 1 × GPU then 2 × GPU: 1.0 h; not recorded: 0.3 h)" in text
     assert "runs older than that column (1) count their `wall_time`" in text
