@@ -13,11 +13,21 @@ the actor and critic what success needs; one that can points at the learning sig
 
     python -m experiments.probes.vision --envs planar_reach,ur5_reach --conv-strides 3,2,2,2 2,2,1,1
 
+`--target SEGMENT` reads a proprio segment instead of the achieved goal, e.g. the hand's grasp point
+`ee_pos` on NICOL, which an image-only agent must also see to push or grasp the cube; "located" then
+uses the task's ε as well. Since the hand starts every episode at rest, `--random-steps K` takes each
+frame after K uniformly random actions from a start state, so that the hand is spread over the
+workspace:
+
+    python -m experiments.probes.vision --envs nicol_slide --target ee_pos --random-steps 10
+
 Frames: `--frames` start states of `env.reset` (each task draws its start, e.g. the arm's joint
 angles or the cube's place, uniformly over the task's range: many distinct states, where the
-frames of an episode are alike), a fifth held out. Training: Adam,
+frames of an episode are alike), or the states `--random-steps` random actions later; a fifth
+held out. Training: Adam,
 `--steps` updates of `--batch` frames, on targets standardised by the training frames' mean
-and std. Prints a markdown table (one row per env and strides) and writes it to `--out`.
+and std. Prints a markdown table (one row per env and strides; the env column names the target and
+the random steps where they are not the defaults) and writes it to `--out`.
 """
 
 from __future__ import annotations
@@ -26,6 +36,7 @@ import argparse
 import sys
 import time
 
+import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
@@ -40,10 +51,12 @@ from experiments import cli
 
 PROG = "python -m experiments.probes.vision"
 HELD_OUT = 0.2  # share of the frames the probe is tested on
+FRAME_CHUNK = 256  # frames simulated at once (vmapped): 16,000 NICOL envs stepped at once need over 20 GB
+ACHIEVED_GOAL = "achieved_goal"  # the default target; any other is a proprio segment's name
 
 
 class Probe(nn.Module):
-    """The agents' vision branch and a linear head: image [B, 42, 42, 1] -> achieved goal [B, G]."""
+    """The agents' vision branch and a linear head: image [B, 42, 42, 1] -> target [B, G]."""
 
     goal_size: int
     strides: tuple[int, ...]
@@ -55,10 +68,22 @@ class Probe(nn.Module):
         return nn.Dense(self.goal_size)(VisionBranch(self.channels, self.features, self.strides)(image))
 
 
-def frames(env, key: jax.Array, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(images [n, 42, 42, 1], achieved goals [n, G]) of `n` start states of `env.reset`."""
-    obs = jax.jit(jax.vmap(lambda k: env.reset(k).obs))(jax.random.split(key, n))
-    return np.asarray(obs["image"]), np.asarray(obs["achieved_goal"])
+def frames(env, key: jax.Array, n: int, random_steps: int = 0,
+           target: str = ACHIEVED_GOAL) -> tuple[np.ndarray, np.ndarray]:
+    """(images [n, 42, 42, 1], targets [n, G]) of `n` start states of `env.reset`, each after
+    `random_steps` uniformly random actions; the target is the achieved goal or the proprio segment
+    named `target`."""
+
+    def observe(k):  # the start state of key k, as without random actions; the actions' key folded from it
+        actions = jax.random.uniform(jax.random.fold_in(k, 1), (random_steps, env.action_size), minval=-1.0, maxval=1.0)
+        state, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), env.reset(k), actions)
+        return state.obs
+
+    obs = jax.jit(lambda keys: jax.lax.map(observe, keys, batch_size=FRAME_CHUNK))(jax.random.split(key, n))
+    labels = obs[ACHIEVED_GOAL] if target == ACHIEVED_GOAL else obs["proprio"][
+        :, env.observation_spec.segment_slice(target)]
+    chex.assert_rank(labels, 2)
+    return np.asarray(obs["image"]), np.asarray(labels)
 
 
 def fit(model: Probe, key: jax.Array, images: np.ndarray, targets: np.ndarray, steps: int, batch: int, lr: float):
@@ -87,24 +112,23 @@ def located(pred: np.ndarray, goals: np.ndarray, epsilon: float) -> float:
     return float(np.mean(np.linalg.norm(pred - goals, axis=-1) < epsilon))
 
 
-def probe(env, strides: tuple[int, ...], key: jax.Array, n_frames: int, steps: int, batch: int, lr: float) -> dict:
-    """The probe's figures on `env`'s held-out frames: RMSE per goal dimension and share located,
-    of the probe and of the constant prediction."""
-    key_frames, key_fit = jax.random.split(key)
-    images, goals = frames(env, key_frames, n_frames)
-    cut = int(round(n_frames * (1 - HELD_OUT)))
+def probe(images: np.ndarray, goals: np.ndarray, epsilon: float, strides: tuple[int, ...], key: jax.Array,
+          steps: int, batch: int, lr: float) -> dict:
+    """The probe's figures on the held-out share of `frames`' (images, goals): RMSE per target
+    dimension and share located within `epsilon`, of the probe and of the constant prediction."""
+    cut = int(round(len(images) * (1 - HELD_OUT)))
     (train_x, train_y), (test_x, test_y) = (images[:cut], goals[:cut]), (images[cut:], goals[cut:])
     mean, std = train_y.mean(0), train_y.std(0) + 1e-6
-    model = Probe(env.observation_spec.goal_size, strides)
-    params = fit(model, key_fit, train_x, (train_y - mean) / std, steps, batch, lr)
+    model = Probe(goals.shape[-1], strides)
+    params = fit(model, key, train_x, (train_y - mean) / std, steps, batch, lr)
     apply = jax.jit(model.apply)
     pred = np.concatenate([np.asarray(apply(params, test_x[i:i + 1024])) for i in range(0, len(test_x), 1024)])
     pred = pred * std + mean
     return {
         "rmse": np.sqrt(np.mean((pred - test_y) ** 2, axis=0)),
         "constant_rmse": np.sqrt(np.mean((mean - test_y) ** 2, axis=0)),
-        "located": located(pred, test_y, env.epsilon),
-        "constant": located(np.broadcast_to(mean, test_y.shape), test_y, env.epsilon),
+        "located": located(pred, test_y, epsilon),
+        "constant": located(np.broadcast_to(mean, test_y.shape), test_y, epsilon),
         "frames": (len(train_x), len(test_x)),
     }
 
@@ -125,6 +149,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--batch", type=int, default=256, help="frames per update")
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the frames and the probe")
+    parser.add_argument(
+        "--target", default=ACHIEVED_GOAL,
+        help="what the probe reads: achieved_goal (default) or a proprio segment of every env, e.g. ee_pos",
+    )
+    parser.add_argument(
+        "--random-steps", type=int, default=0,
+        help="uniformly random actions from each start state before its frame (default 0: start states)",
+    )
     parser.add_argument("--out", default="", help="also write the table to this file")
     return parser
 
@@ -135,10 +167,27 @@ def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]
     for text in args.conv_strides:
         validate.check_field("conv_strides", text)
     strides = [parse_strides(text) for text in args.conv_strides]
-    for flag, value, least in (("--frames", args.frames, 5), ("--steps", args.steps, 1), ("--batch", args.batch, 1)):
+    for flag, value, least in (("--frames", args.frames, 5), ("--steps", args.steps, 1), ("--batch", args.batch, 1),
+                               ("--random-steps", args.random_steps, 0)):
         if value < least:
             raise ConfigError(f"{flag} {value}: must be an integer >= {least}")
     return envs, strides
+
+
+def check_target(target: str, envs: dict) -> None:
+    """ConfigError unless `target` is the achieved goal or a proprio segment of every env in `envs`."""
+    for name, env in envs.items():
+        segments = env.observation_spec.segment_names
+        if target != ACHIEVED_GOAL and target not in segments:
+            raise ConfigError(
+                f"--target {target}: not a proprio segment of {name}; allowed: {ACHIEVED_GOAL}, {', '.join(segments)}")
+
+
+def label(name: str, target: str, random_steps: int) -> str:
+    """The table's env column: the env, and what the probe reads where it is not the default."""
+    parts = ([] if target == ACHIEVED_GOAL else [target]) + (
+        [f"after {random_steps} random actions"] if random_steps else [])
+    return f"{name}: {' '.join(parts)}" if parts else name
 
 
 def row(name: str, env, strides: tuple[int, ...], result: dict) -> str:
@@ -152,7 +201,9 @@ def row(name: str, env, strides: tuple[int, ...], result: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        envs, strides = checked(args)
+        names, strides = checked(args)
+        envs = {name: envs_mjx.make(name, render=True) for name in names}
+        check_target(args.target, envs)
     except ConfigError as err:
         return cli.exit_code(err)
     lines = [
@@ -162,19 +213,15 @@ def main(argv: list[str] | None = None) -> int:
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     print("\n".join(lines), flush=True)
-    for name in envs:
-        env = envs_mjx.make(name, render=True)
+    key_frames, key_fit = jax.random.split(jax.random.PRNGKey(args.seed))
+    for name, env in envs.items():
+        start = time.time()
+        images, goals = frames(env, key_frames, args.frames, args.random_steps, args.target)
         for s in strides:
-            start = time.time()
-            lines.append(
-                row(
-                    name,
-                    env,
-                    s,
-                    probe(env, s, jax.random.PRNGKey(args.seed), args.frames, args.steps, args.batch, args.lr),
-                )
-            )
+            result = probe(images, goals, env.epsilon, s, key_fit, args.steps, args.batch, args.lr)
+            lines.append(row(label(name, args.target, args.random_steps), env, s, result))
             print(f"{lines[-1]}  ({time.time() - start:.0f} s)", flush=True)
+            start = time.time()
     if args.out:
         with open(args.out, "w") as f:
             f.write("\n".join(lines) + "\n")

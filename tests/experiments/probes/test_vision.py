@@ -17,6 +17,9 @@ def test_located_is_the_share_within_epsilon():
     (["--conv-strides", "2,2,1"], "error: --conv-strides 2,2,1: must be four comma-separated positive integers"),
     (["--frames", "4"], "error: --frames 4: must be an integer >= 5"),
     (["--steps", "0"], "error: --steps 0: must be an integer >= 1"),
+    (["--random-steps", "-1"], "error: --random-steps -1: must be an integer >= 0"),
+    (["--envs", "planar_reach", "--target", "ee_pos"],
+     "error: --target ee_pos: not a proprio segment of planar_reach; allowed: achieved_goal, q, qdot"),
 ])
 def test_bad_input_is_one_line_before_any_work(argv, expected, tmp_path, capsys):
     out = tmp_path / "table.md"
@@ -26,9 +29,24 @@ def test_bad_input_is_one_line_before_any_work(argv, expected, tmp_path, capsys)
     assert not out.exists()
 
 
-def test_a_tiny_probe_writes_its_table(tmp_path, capsys):
+def test_the_env_column_names_a_target_and_random_steps_only_where_not_the_default():
+    assert vision_probe.label("nicol_slide", "achieved_goal", 0) == "nicol_slide"
+    assert vision_probe.label("nicol_slide", "ee_pos", 0) == "nicol_slide: ee_pos"
+    assert vision_probe.label("nicol_slide", "ee_pos", 10) == "nicol_slide: ee_pos after 10 random actions"
+
+
+@pytest.mark.parametrize("extra, env_column", [
+    ([], "planar_reach"),  # the achieved goal (hand xy) of start states
+    (["--target", "qdot", "--random-steps", "2"], "planar_reach: qdot after 2 random actions"),
+])
+def test_a_tiny_probe_writes_its_table(extra, env_column, tmp_path):
     out = tmp_path / "table.md"
     argv = ["--envs", "planar_reach", "--conv-strides", "3,2,2,2", "--frames", "20", "--steps", "3", "--batch", "4"]
-    assert vision_probe.main([*argv, "--out", str(out)]) == 0
+    assert vision_probe.main([*argv, *extra, "--out", str(out)]) == 0
     row = out.read_text().splitlines()[-1]
-    assert row.startswith("| planar_reach | 3,2,2,2 | 0.02 | ") and row.endswith("| 16 / 4 |")
+    assert row.startswith(f"| {env_column} | 3,2,2,2 | 0.02 | ") and row.endswith("| 16 / 4 |")
+    constant_rmse = [float(x.split("(")[1].rstrip(")")) for x in row.split(" | ")[3].split(", ")]
+    assert len(constant_rmse) == 2  # one per target dimension
+    # the start states vary in hand position; their joint velocities are all zero until random actions move the arm
+    assert min(constant_rmse) > 0
+
