@@ -49,4 +49,3 @@ def test_a_tiny_probe_writes_its_table(extra, env_column, tmp_path):
     assert len(constant_rmse) == 2  # one per target dimension
     # the start states vary in hand position; their joint velocities are all zero until random actions move the arm
     assert min(constant_rmse) > 0
-
