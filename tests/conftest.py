@@ -15,7 +15,9 @@ from bidal_jax.run import loop, preflight
 from experiments import run
 from tests.helpers import FINISHED
 
-jax.config.update("jax_compilation_cache_dir", os.path.join(os.path.dirname(os.path.dirname(__file__)), ".jax_cache"))
+CACHE = os.path.join(os.path.dirname(os.path.dirname(__file__)), ".jax_cache")
+os.environ.setdefault("BIDAL_JAX_CACHE", CACHE)  # the runs' own cache (`loop.enable_compilation_cache`)
+jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 

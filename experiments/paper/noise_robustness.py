@@ -41,7 +41,7 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax.config import ConfigError, resolve
-from bidal_jax.run import loop, multihost
+from bidal_jax.run import multihost
 from experiments import cli, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
@@ -203,7 +203,6 @@ def main(argv: list[str] | None = None) -> int:
                 else f"one program of {args.runs} runs per agent and κ")
     print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {kappas or KAPPAS} × {args.runs} runs "
           f"each ({programs}), {given['epochs']} epochs, into {args.out}")
-    loop.enable_compilation_cache()
     arms = make_arms(args.agents, kappas, args.out, given, args.runs)
     code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)
     if code:

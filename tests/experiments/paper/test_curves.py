@@ -5,6 +5,7 @@ task, resuming, stale runs, refusals, the held-starts variant and the report."""
 import csv
 import os
 
+import jax
 import pytest
 
 import envs_mjx
@@ -107,6 +108,19 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     ]
     assert f"planar_reach/proprio_baseline: done ({done})" in capsys.readouterr().out
     assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s* |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
+
+
+def test_training_compiles_into_the_runs_persistent_cache(tmp_path, monkeypatch, no_nicol):
+    """A resumed cell on a fresh machine finds its program in the cache carried there ($BIDAL_JAX_CACHE)."""
+    monkeypatch.setenv("BIDAL_JAX_CACHE", str(tmp_path / "cache"))
+    keys = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    kept = {key: getattr(jax.config, key) for key in keys}
+    try:
+        assert curves.main([*SMALL, "--out", str(tmp_path / "out")]) == 0
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "cache")
+    finally:
+        for key, value in kept.items():
+            jax.config.update(key, value)
 
 
 @pytest.mark.parametrize(
