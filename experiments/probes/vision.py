@@ -207,7 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         return cli.exit_code(err)
     lines = [
-        "| env | conv strides | ε | held-out RMSE per goal dimension (constant prediction) | located (within ε) | "
+        f"| env | conv strides | ε | held-out RMSE per {'goal' if args.target == ACHIEVED_GOAL else args.target} "
+        "dimension (constant prediction) | located (within ε) | "
         "constant prediction | "
         "frames train / held out |",
         "| --- | --- | --- | --- | --- | --- | --- |",

@@ -35,14 +35,15 @@ def test_the_env_column_names_a_target_and_random_steps_only_where_not_the_defau
     assert vision_probe.label("nicol_slide", "ee_pos", 10) == "nicol_slide: ee_pos after 10 random actions"
 
 
-@pytest.mark.parametrize("extra, env_column", [
-    ([], "planar_reach"),  # the achieved goal (hand xy) of start states
-    (["--target", "qdot", "--random-steps", "2"], "planar_reach: qdot after 2 random actions"),
+@pytest.mark.parametrize("extra, env_column, located", [
+    ([], "planar_reach", "goal"),  # the achieved goal (hand xy) of start states
+    (["--target", "qdot", "--random-steps", "2"], "planar_reach: qdot after 2 random actions", "qdot"),
 ])
-def test_a_tiny_probe_writes_its_table(extra, env_column, tmp_path):
+def test_a_tiny_probe_writes_its_table(extra, env_column, located, tmp_path):
     out = tmp_path / "table.md"
     argv = ["--envs", "planar_reach", "--conv-strides", "3,2,2,2", "--frames", "20", "--steps", "3", "--batch", "4"]
     assert vision_probe.main([*argv, *extra, "--out", str(out)]) == 0
+    assert f"| held-out RMSE per {located} dimension (constant prediction) |" in out.read_text().splitlines()[0]
     row = out.read_text().splitlines()[-1]
     assert row.startswith(f"| {env_column} | 3,2,2,2 | 0.02 | ") and row.endswith("| 16 / 4 |")
     constant_rmse = [float(x.split("(")[1].rstrip(")")) for x in row.split(" | ")[3].split(", ")]
