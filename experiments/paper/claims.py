@@ -38,6 +38,7 @@ line; nothing written).
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import os
 import sys
@@ -293,10 +294,7 @@ def on_other_physics(runs: Sequence[dict]) -> list[dict]:
 
 def per_task(runs: Sequence[dict]) -> dict[str, int]:
     """Task -> how many of `runs` are of it."""
-    counts: dict[str, int] = {}
-    for run in runs:
-        counts[run["env"]] = counts.get(run["env"], 0) + 1
-    return counts
+    return dict(collections.Counter(run["env"] for run in runs))
 
 
 def counted(tasks: dict[str, int]) -> str:
