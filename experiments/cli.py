@@ -104,7 +104,9 @@ def start_run(
     """Prepare the run `given` asks for (every check, nothing written), delete its directory with
     `overwrite`, then train it: (its config, its last metrics row). `env` defaults to one made for
     the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for;
-    `fresh_buffer` resumes with an empty replay buffer. Raises what `FAILURES` names."""
+    `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
+    (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile.
+    Raises what `FAILURES` names."""
     config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
                                overwrite=overwrite, fresh_buffer=fresh_buffer)
     if overwrite:
@@ -113,6 +115,7 @@ def start_run(
         env = envs_mjx.make(config.run.env, render=config.agent.uses_image)
     if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
         initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)
+    loop.enable_compilation_cache()
     return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize,
                               fresh_buffer=fresh_buffer)
 

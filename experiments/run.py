@@ -38,7 +38,7 @@ import json
 import sys
 
 from bidal_jax.config import resolve
-from bidal_jax.run import loop, multihost, preflight
+from bidal_jax.run import multihost, preflight
 from experiments import cli
 
 
@@ -53,7 +53,6 @@ def main(argv: list[str] | None = None) -> int:
                 config = preflight.resumed_config(args.run_dir, given)
             print(json.dumps(config.to_dict(), indent=2))
             return 0
-        loop.enable_compilation_cache()
         config, row = cli.start_run(given, resume=args.resume, overwrite=args.overwrite, quiet=args.quiet,
                                     fresh_buffer=args.fresh_buffer)
     except cli.FAILURES as err:

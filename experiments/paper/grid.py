@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
 from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
-from bidal_jax.run import checkpoint, loop, validate
+from bidal_jax.run import checkpoint, validate
 from experiments import cli, report
 
 # what passes through to every run: the learner and network options (the exploration starts are
@@ -238,11 +238,9 @@ def train_arm(arm: Arm, env, quiet: bool) -> None:
 
 def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
     """Train the runs in order (`train_arm`) until one fails or is stopped; the exit code. A stale run among them
-    (`refuse_stale`) is refused before any trains: 2. Compiled programs go to the persistent cache, so that a
-    resumed or repeated run of a config skips XLA's compile."""
+    (`refuse_stale`) is refused before any trains: 2."""
     try:
         refuse_stale(arms, envs)
-        loop.enable_compilation_cache()
         for arm in arms:
             train_arm(arm, envs[arm.name], quiet)
     except cli.FAILURES as err:
