@@ -107,6 +107,7 @@ def start_run(
     `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
     (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile.
     Raises what `FAILURES` names."""
+    loop.enable_compilation_cache()  # before anything compiles: JAX reads the setting at its first compile
     config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
                                overwrite=overwrite, fresh_buffer=fresh_buffer)
     if overwrite:
@@ -115,7 +116,6 @@ def start_run(
         env = envs_mjx.make(config.run.env, render=config.agent.uses_image)
     if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
         initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)
-    loop.enable_compilation_cache()
     return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize,
                               fresh_buffer=fresh_buffer)
 

@@ -1,13 +1,17 @@
 """Command-line smoke run: `python -m experiments.run` writes metrics, TensorBoard and a checkpoint."""
 
 import csv
+import glob
 import json
 import os
+import subprocess
+import sys
 
 import pytest
 
 from bidal_jax.run import checkpoint
 from experiments import run
+from tests import helpers
 
 TINY = [
     "--env", "planar_reach", "--epochs", "2", "--checkpoint-every", "1", "--num-envs", "4",
@@ -35,6 +39,20 @@ def test_cli_smoke_run_writes_metrics_tensorboard_and_checkpoint(tmp_path, capsy
     assert saved["run"]["agent"] == "visual_bidal" and saved["train"]["num_envs"] == 4
     with open(os.path.join(run_dir, "config.json")) as f:
         assert json.load(f) == saved
+
+
+@pytest.mark.slow
+def test_the_training_program_lands_in_the_runs_cache_even_where_jax_names_another(tmp_path):
+    """$BIDAL_JAX_CACHE wins over JAX's own $JAX_COMPILATION_CACHE_DIR: the cache is switched on before
+    anything compiles (JAX fixes the folder at a process's first compile). A fresh process, so its own first."""
+    ours, jaxs = tmp_path / "ours", tmp_path / "jaxs"
+    env = {**os.environ, "BIDAL_JAX_CACHE": str(ours), "JAX_COMPILATION_CACHE_DIR": str(jaxs)}
+    proc = subprocess.run([sys.executable, "-m", "experiments.run", *helpers.TINY, "--epochs", "1", "--run-dir",
+                           str(tmp_path / "run")], cwd=helpers.REPO, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert glob.glob(str(ours / "jit_epoch-*")), sorted(os.listdir(ours)) if ours.exists() else "no cache folder"
+    assert not jaxs.exists()
 
 
 def test_help_documents_every_option(capsys):
