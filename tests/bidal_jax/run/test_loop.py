@@ -175,7 +175,9 @@ def test_sigint_and_sigterm_save_a_checkpoint_and_exit(tmp_path):
     assert [int(r["epoch"]) for r in metric_rows(run_dir)] == list(range(1, second + 1))
 
 
-@pytest.mark.parametrize("ours, jaxs, expected", [("/a", "/b", "/a"), ("", "/b", "/b"), ("", "", "~/.cache/bidal_jax/xla")])
+@pytest.mark.parametrize(
+    "ours, jaxs, expected", [("/a", "/b", "/a"), ("", "/b", "/b"), ("", "", "~/.cache/bidal_jax/xla")]
+)
 def test_the_cache_folder_is_ours_else_jaxs_else_the_default(monkeypatch, ours, jaxs, expected):
     for name, value in (("BIDAL_JAX_CACHE", ours), ("JAX_COMPILATION_CACHE_DIR", jaxs)):
         monkeypatch.setenv(name, value) if value else monkeypatch.delenv(name, raising=False)
