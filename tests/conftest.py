@@ -30,16 +30,18 @@ TODAY = "0123456789abcdef"  # the physics fingerprint (`Env.physics_id`) of ever
 
 def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, agent: str = "multimodal_bidal",
                    compile_seconds: float | None = None, physics: list[str] | None = None,
-                   given: dict | None = None) -> None:
+                   given: dict | None = None, buffer: bool = True) -> None:
     """A run directory as `loop.train` writes it (config.json, metrics.csv), with an (empty) checkpoint
-    step unless `checkpoint_epoch` is None. `rows`: per epoch, each seed's eval success; every
+    step unless `checkpoint_epoch` is None, holding an (empty) replay buffer item unless `buffer` is False (a
+    run carried without it, `experiments.carry`). `rows`: per epoch, each seed's eval success; every
     epoch is 100 env steps per seed and 10 s of wall time. With `compile_seconds`, metrics.csv has
     `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column. With
     `physics`, config.json records those physics fingerprints; without, it is a run recorded before them. With
     `given` (config fields, e.g. an arm's `given`), config.json holds the whole config they resolve to, as a run
     writes it; without, only the run's env, agent and seeds (every other field takes its default when read)."""
     seeds = len(rows[0])
-    os.makedirs(run_dir if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch)))
+    step = None if checkpoint_epoch is None else os.path.join(run_dir, "checkpoints", str(checkpoint_epoch))
+    os.makedirs(run_dir if step is None else os.path.join(step, "buffer") if buffer else step)
     with open(os.path.join(run_dir, "config.json"), "w") as f:
         config = {"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}
         if given is not None:

@@ -151,6 +151,13 @@ def latest_step(directory: str) -> int | None:
     return found[-1] if found else None
 
 
+def has_buffer(directory: str, step: int | None = None) -> bool:
+    """Whether a checkpoint (the latest by default) holds its replay buffer item: one carried without it
+    (`experiments.carry`) resumes only with an empty buffer; CheckpointError if the step is absent."""
+    path, _ = _step_dir(directory, step)
+    return os.path.isdir(os.path.join(path, "buffer"))
+
+
 def best_step(directory: str) -> int | None:
     """The checkpoint with the highest saved eval success (the latest of equals), or None."""
     found = steps(directory)

@@ -3,7 +3,8 @@
 
 An experiment is a list of `Arm`s: a name and the config fields of one run (`run_dir` and
 `epochs` resolved). `status` says what running it again does: "done" (its latest checkpoint is
-at its epochs: skipped), "resume" (an earlier checkpoint: continued from it), "new" (no
+at its epochs: skipped), "resume" (an earlier checkpoint: continued from it; with an empty replay buffer when
+the checkpoint was carried without its buffer, `experiments.carry`, as `--resume --fresh-buffer` does), "new" (no
 checkpoint: its directory is deleted and it starts again) or "stale" (its folder holds epochs of
 a run on other physics or with another config than the arm's today, `stale`: refused). `train_arms`
 trains them in-process (`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`):
@@ -215,11 +216,19 @@ def plan_line(arm: Arm, env) -> str:
     per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
     source = f", parameters from {run.init_from}" if run.init_from else ""
     state, step, why = status(arm, env.physics_id)
+    carried = " without its replay buffer" if state == "resume" and carried_without_buffer(arm) else ""
     return (
         f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
         f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
-        f"[{state}" + (f", checkpoint at epoch {step}]" if state == "resume" else f": {why}]" if why else "]")
+        f"[{state}" + (f", checkpoint at epoch {step}{carried}]" if state == "resume" else f": {why}]" if why else "]")
     )
+
+
+def carried_without_buffer(arm: Arm) -> bool:
+    """Whether the run's latest checkpoint lacks its replay buffer (a run carried from another machine or sitting,
+    `experiments.carry`): training resumes it with an empty buffer, as `--resume --fresh-buffer` does."""
+    directory = os.path.join(arm.run_dir, "checkpoints")
+    return checkpoint.latest_step(directory) is not None and not checkpoint.has_buffer(directory)
 
 
 def train_arm(arm: Arm, env, quiet: bool) -> None:
@@ -230,8 +239,12 @@ def train_arm(arm: Arm, env, quiet: bool) -> None:
         print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
         return
     resume = state == "resume"  # else a run stopped before its first checkpoint starts again
+    fresh_buffer = resume and carried_without_buffer(arm)
+    if fresh_buffer:
+        print(f"{arm.name}: its checkpoint was carried without its replay buffer: resuming with an empty one "
+              "(recorded in its config.json, named below the table)")
     config, row = cli.start_run(arm.given, resume=resume, overwrite=not resume, quiet=quiet, env=env,
-                                initialize=arm.initialize)
+                                initialize=arm.initialize, fresh_buffer=fresh_buffer)
     print(f"{arm.name}:", end=" ")
     cli.print_summary(config.run, row)
 

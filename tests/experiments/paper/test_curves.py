@@ -10,6 +10,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax import config as config_lib
+from bidal_jax.run import loop
 from experiments.paper import curves, grid
 from tests.conftest import TODAY, write_fake_run
 
@@ -108,6 +109,29 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     ]
     assert f"planar_reach/proprio_baseline: done ({done})" in capsys.readouterr().out
     assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s* |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
+
+
+def test_a_run_carried_without_its_buffer_resumes_with_an_empty_one(tmp_path, no_nicol, fake_run, monkeypatch,
+                                                                    capsys):
+    out = tmp_path / "out"
+    carried, kept = (str(out / "planar_reach" / a) for a in ("visual_baseline", "proprio_baseline"))
+    fake_run(carried, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline", buffer=False)  # experiments.carry's
+    fake_run(kept, "planar_reach", [(0.2, 0.2)], 1, agent="proprio_baseline")
+    assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert f"{carried} [resume, checkpoint at epoch 1 without its replay buffer]" in printed
+    assert f"{kept} [resume, checkpoint at epoch 1]" in printed
+    fresh, train = [], loop.train  # no_nicol's
+
+    def record(env, config, **kwargs):
+        fresh.append((config.run.run_dir, kwargs["fresh_buffer"]))
+        return train(env, config, **kwargs)
+
+    monkeypatch.setattr(loop, "train", record)
+    assert curves.main([*SMALL, "--out", str(out)]) == 0
+    assert fresh[:2] == [(kept, False), (carried, True)]
+    assert "visual_baseline: its checkpoint was carried without its replay buffer: resuming with an empty one" in (
+        capsys.readouterr().out)
 
 
 def test_training_compiles_into_the_runs_persistent_cache(tmp_path, monkeypatch, no_nicol):

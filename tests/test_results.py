@@ -1,0 +1,70 @@
+"""What results/ may hold (.gitignore): run folders (config.json, metrics.csv), plots and tables; of an unfinished
+run also its latest checkpoint without the replay buffer (`python -m experiments.carry`), from which a later
+sitting on any machine continues it; never a finished run's checkpoints, a second checkpoint or a buffer."""
+
+import csv
+import json
+import os
+
+from tests.conftest import write_fake_run
+from tests.helpers import REPO
+
+# a carried checkpoint of a 5-seed NICOL image run is 7-9 MB; the working tree a GPU lease receives is 64 MiB
+MAX_CHECKPOINT_BYTES = 16 * 2**20
+
+
+def folder_bytes(path: str) -> int:
+    return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
+
+
+def last_epoch(run_dir: str) -> int:
+    """The last epoch of the run's metrics.csv (0 without a row)."""
+    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
+        return max((int(float(row["epoch"])) for row in csv.DictReader(f)), default=0)
+
+
+def misplaced_checkpoints(root: str) -> list[str]:
+    """One line per checkpoint under `root` that results/ must not hold."""
+    problems = []
+    for run_dir, folders, _ in sorted(os.walk(root)):
+        if "checkpoints" not in folders:
+            continue
+        steps = sorted(os.listdir(os.path.join(run_dir, "checkpoints")))
+        with open(os.path.join(run_dir, "config.json")) as f:
+            epochs = json.load(f)["run"]["epochs"]
+        reached = last_epoch(run_dir)
+        if reached >= epochs:
+            problems.append(f"{run_dir}: finished ({reached} of {epochs} epochs) but keeps checkpoints")
+        if steps != [str(reached)]:
+            problems.append(f"{run_dir}: checkpoints {steps}; keep the latest alone, that of epoch {reached}")
+        for step in steps:
+            path = os.path.join(run_dir, "checkpoints", step)
+            if os.path.exists(os.path.join(path, "buffer")):
+                problems.append(f"{run_dir}: checkpoint {step} holds its replay buffer")
+            if folder_bytes(path) > MAX_CHECKPOINT_BYTES:
+                problems.append(f"{run_dir}: checkpoint {step} is over {MAX_CHECKPOINT_BYTES // 2**20} MiB")
+    return problems
+
+
+def test_results_hold_only_the_carried_checkpoints_of_unfinished_runs():
+    assert misplaced_checkpoints(os.path.join(REPO, "results")) == []
+
+
+def test_misplaced_checkpoints_are_found(tmp_path):
+    def write(name, epochs_run, checkpoint_epoch, buffer=False):
+        run_dir = str(tmp_path / name)
+        write_fake_run(run_dir, "planar_reach", [(0.1,)] * epochs_run, checkpoint_epoch, given={"epochs": 3},
+                       buffer=buffer)
+        return run_dir
+
+    write("finished-kept", 3, None)
+    write("carried", 2, 2)
+    assert misplaced_checkpoints(str(tmp_path)) == []
+    finished, buffered, older = write("finished", 3, 3), write("buffered", 2, 2, buffer=True), write("older", 2, 1)
+    os.makedirs(os.path.join(buffered, "checkpoints", "1"))
+    assert misplaced_checkpoints(str(tmp_path)) == [
+        f"{buffered}: checkpoints ['1', '2']; keep the latest alone, that of epoch 2",
+        f"{buffered}: checkpoint 2 holds its replay buffer",
+        f"{finished}: finished (3 of 3 epochs) but keeps checkpoints",
+        f"{older}: checkpoints ['1']; keep the latest alone, that of epoch 2",
+    ]
