@@ -29,13 +29,15 @@ class PatchConv(nn.Module):
 
     Same result and parameter layout (kernel [k, k, C, F], bias [F]) as `nn.Conv`, but
     XLA's CPU backend runs this form 3-4× faster inside the training loop's `lax.scan`,
-    where its native convolution is slow.
+    where its native convolution is slow. `native` computes the same convolution with XLA's
+    convolution op instead (`NetworkConfig.conv_impl`; cuDNN on a GPU), same parameters.
     """
 
     features: int
     kernel: int = 3
     stride: int = 2
     padding: str = "SAME"
+    native: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -48,6 +50,11 @@ class PatchConv(nn.Module):
             x = jnp.pad(x, ((0, 0), (pad_h // 2, pad_h - pad_h // 2), (pad_w // 2, pad_w - pad_w // 2), (0, 0)))
         else:
             out_h, out_w = (height - k) // s + 1, (width - k) // s + 1
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features))
+        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        if self.native:  # x is padded already: a VALID convolution gives the out_h × out_w map
+            return jax.lax.conv_general_dilated(x, kernel, (s, s), "VALID",
+                                                dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
         patches = jnp.concatenate(
             [
                 x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
@@ -56,8 +63,6 @@ class PatchConv(nn.Module):
             ],
             axis=-1,
         )
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features))
-        bias = self.param("bias", nn.initializers.zeros, (self.features,))
         return patches @ kernel.reshape(k * k * channels, self.features) + bias
 
 
@@ -73,15 +78,16 @@ class VisionBranch(nn.Module):
     channels: int
     features: int
     strides: tuple[int, ...] = (3, 2, 2, 2)
+    native: bool = False  # XLA's convolution op instead of slices and a matmul (PatchConv)
 
     @nn.compact
     def __call__(self, image: jax.Array) -> jax.Array:
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
         x = image.astype(jnp.float32) / 255.0
         first, *rest = self.strides
-        x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID")(x))
+        x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", native=self.native)(x))
         for stride in rest:
-            x = nn.elu(PatchConv(self.channels, stride=stride)(x))
+            x = nn.elu(PatchConv(self.channels, stride=stride, native=self.native)(x))
         x = x.reshape(x.shape[0], -1)
         return nn.elu(nn.Dense(self.features)(x))
 
@@ -99,7 +105,8 @@ class Encoder(nn.Module):
     def __call__(self, image: jax.Array, proprio: jax.Array) -> jax.Array:
         chex.assert_rank(proprio, 2)
         cfg = self.config
-        parts = [VisionBranch(cfg.conv_channels, cfg.vision_features, parse_strides(cfg.conv_strides))(image)]
+        parts = [VisionBranch(cfg.conv_channels, cfg.vision_features, parse_strides(cfg.conv_strides),
+                              native=cfg.conv_impl == "native")(image)]
         if self.uses_proprio:
             parts.append(nn.elu(nn.Dense(cfg.proprio_features, name=PROPRIO_LAYER)(proprio)))
         x = nn.Dense(cfg.latent_size)(jnp.concatenate(parts, axis=-1))

@@ -74,7 +74,7 @@ def run_parser() -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --run-dir from its latest checkpoint, with its saved config "
-                        "(only --epochs may change)")
+                        "(only --epochs and --conv-impl may change)")
     parser.add_argument("--fresh-buffer", action="store_true",
                         help="with --resume: restore all but the replay buffer, which starts empty (a checkpoint "
                         "carried without its buffer item); recorded in config.json's fresh_buffer_epochs")

@@ -9,8 +9,8 @@ loop and its outputs in `bidal_jax.run.loop`, the options and the start of a run
 `experiments/cli.py`; this module is only the command line.
 
 - `--resume` continues the run in `--run-dir` from its latest checkpoint with the
-  checkpoint's config; only `--epochs` (not below the checkpoint's epoch), `--run-dir`
-  and `--quiet` may be given with other values. `--resume --fresh-buffer` restores all but the
+  checkpoint's config; only `--epochs` (not below the checkpoint's epoch), `--run-dir`,
+  `--conv-impl` and `--quiet` may be given with other values. `--resume --fresh-buffer` restores all but the
   replay buffer, which starts empty (a checkpoint carried without its `buffer` item; a deviation
   from the uninterrupted run, recorded in config.json's `fresh_buffer_epochs`).
 - Ctrl-C (SIGINT) or SIGTERM lets the epoch in flight finish, saves a checkpoint and

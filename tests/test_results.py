@@ -6,15 +6,12 @@ import csv
 import json
 import os
 
+from experiments.carry import folder_bytes
 from tests.conftest import write_fake_run
 from tests.helpers import REPO
 
 # a carried checkpoint of a 5-seed NICOL image run is 7-9 MB; the working tree a GPU lease receives is 64 MiB
 MAX_CHECKPOINT_BYTES = 16 * 2**20
-
-
-def folder_bytes(path: str) -> int:
-    return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
 
 
 def last_epoch(run_dir: str) -> int:

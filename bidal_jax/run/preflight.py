@@ -29,8 +29,9 @@ from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, 
 from bidal_jax.run.devices import device_layout
 from bidal_jax.train import make_train
 
-# fields whose value on resume may differ from the checkpoint's
-RESUME_MAY_CHANGE = ("epochs", "run_dir")
+# fields whose value on resume may differ from the checkpoint's: the budget, the place, and how the convs are
+# computed (the same function and parameters, `NetworkConfig.conv_impl`)
+RESUME_MAY_CHANGE = ("epochs", "run_dir", "conv_impl")
 # what a run writes into its directory; overwrite deletes nothing else
 RUN_FILES = frozenset(
     {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
@@ -88,12 +89,13 @@ def resumed_config(run_dir: str, given: dict[str, Any]) -> Config:
             if field in given and field not in RESUME_MAY_CHANGE and given[field] != value:
                 raise ConfigError(
                     f"{option(field)} {given[field]} differs from the checkpoint's {value}; "
-                    "a resumed run keeps its config (only --epochs may change)"
+                    "a resumed run keeps its config (only --epochs and --conv-impl may change)"
                 )
     run = dataclasses.replace(config.run, run_dir=run_dir, epochs=given.get("epochs", config.run.epochs))
     if run.epochs < step:
         raise ConfigError(f"--epochs {run.epochs}: must be at least the checkpoint's epoch {step}")
-    return dataclasses.replace(config, run=run)
+    network = dataclasses.replace(config.network, conv_impl=given.get("conv_impl", config.network.conv_impl))
+    return dataclasses.replace(config, run=run, network=network)
 
 
 def check_run_dir(run_dir: str, overwrite: bool) -> None:

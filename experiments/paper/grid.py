@@ -35,9 +35,10 @@ PASS_THROUGH = frozenset(
 ) | {"checkpoint_every"}
 # config fields that cannot change what a run learns or reports, so `stale` does not compare them: where it is
 # written (run_dir) and where its transfer source lies (init_from: a path; the source's own config is its
-# folder's), how often it saves a checkpoint, and how its envs are laid out across devices (env_shards: its
-# random draws differ, not its budget, data or learner)
-NOT_COMPARED = frozenset({"run_dir", "init_from", "checkpoint_every", "env_shards"})
+# folder's), how often it saves a checkpoint, how its envs are laid out across devices (env_shards: its
+# random draws differ, not its budget, data or learner), and how its convs are computed (conv_impl: the same
+# function and parameters, float rounding apart)
+NOT_COMPARED = frozenset({"run_dir", "init_from", "checkpoint_every", "env_shards", "conv_impl"})
 
 
 @dataclasses.dataclass(frozen=True)

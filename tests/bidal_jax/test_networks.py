@@ -18,13 +18,38 @@ def test_every_agent_builds_the_networks_it_needs(agent):
     assert ("forward" in params) == spec.bidal and ("inverse" in params) == spec.bidal
 
 
-@pytest.mark.parametrize("size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME")])
-def test_patch_conv_equals_flax_conv(size, stride, padding):
+@pytest.mark.parametrize("native", [False, True])
+@pytest.mark.parametrize(
+    "size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME"), (10, 1, "SAME")]
+)
+def test_patch_conv_equals_flax_conv(size, stride, padding, native):
     x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
     reference = nn.Conv(5, (3, 3), strides=(stride, stride), padding=padding)
     params = reference.init(jax.random.PRNGKey(1), x)
-    ours = PatchConv(5, stride=stride, padding=padding).apply(params, x)
+    ours = PatchConv(5, stride=stride, padding=padding, native=native).apply(params, x)
     np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
+
+
+@pytest.mark.parametrize("strides", ["3,2,2,2", "2,2,1,1"])
+def test_native_convs_are_the_same_encoder_with_the_same_parameters(strides):
+    """--conv-impl native: the parameter tree (a checkpoint) is the same, and so are φ(s) and its gradients."""
+    def networks(impl):
+        config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides, conv_impl=impl)
+        return make_networks(AGENTS["multimodal_bidal"], config, 4, 2, 2, (42, 42, 1))
+
+    patch, native = networks("patch"), networks("native")
+    params = patch.init(jax.random.PRNGKey(0))["encoder"]
+    assert jax.tree.structure(native.init(jax.random.PRNGKey(0))["encoder"]) == jax.tree.structure(params)
+    image = jax.random.randint(jax.random.PRNGKey(1), (3, 42, 42, 1), 0, 256).astype(np.uint8)
+    proprio = jax.random.normal(jax.random.PRNGKey(2), (3, 4))
+
+    def loss(nets, p):
+        return (nets.encode(p, image, proprio) ** 2).sum()
+
+    np.testing.assert_allclose(native.encode(params, image, proprio), patch.encode(params, image, proprio), atol=1e-5)
+    for a, b in zip(jax.tree.leaves(jax.grad(lambda p: loss(native, p))(params)),
+                    jax.tree.leaves(jax.grad(lambda p: loss(patch, p))(params)), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-4)
 
 
 @pytest.mark.parametrize(

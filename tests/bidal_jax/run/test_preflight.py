@@ -29,6 +29,7 @@ BAD_COMMAND_LINES = {
         ["--conv-strides 2,2,1", "four comma-separated positive integers"],
     ),
     "zero conv stride": (["--conv-strides", "2,0,1,1"], ["--conv-strides 2,0,1,1", "four comma-separated"]),
+    "unknown conv implementation": (["--conv-impl", "fft"], ["--conv-impl fft", "one of patch, native"]),
     "zero actor lr": (["--actor-lr", "0"], ["--actor-lr 0.0", "positive number"]),
     "negative critic lr": (["--critic-lr", "-0.001"], ["--critic-lr -0.001", "positive number"]),
     "nan lr": (["--critic-lr", "nan"], ["--critic-lr nan", "positive number, not nan"]),
@@ -167,6 +168,14 @@ def test_bad_checkpoint_is_refused_and_left_alone(case, good_run, tmp_path, caps
     shutil.copytree(good_run, run_dir)
     damage(run_dir)
     assert_refused(["--resume", "--run-dir", str(run_dir), "--quiet", *extra], run_dir, expected, capsys)
+
+
+def test_resume_may_change_how_the_convs_are_computed(good_run, capsys):
+    """--conv-impl computes the same function with the same parameters: a resumed run may switch it."""
+    assert run.main(["--print-config", "--resume", "--run-dir", str(good_run), "--conv-impl", "native"]) == 0
+    resumed = json.loads(capsys.readouterr().out)
+    assert resumed["network"]["conv_impl"] == "native"
+    assert json.loads((good_run / "config.json").read_text())["network"]["conv_impl"] == "patch"
 
 
 def test_resume_of_a_missing_run_dir_is_refused(tmp_path, capsys):
