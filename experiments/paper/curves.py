@@ -14,7 +14,7 @@ Budget: one epoch count per task for every agent (`EPOCHS`, overridden for all t
 presets of bidal_jax/config.py except two: ur5_reach gets 30 rather than its preset's 15 (too
 few for the visual agents), and planar_reach's image agents get the task's 40 rather than their
 preset's 20, so that every curve of a panel covers the same env steps. The other settings are the env
-presets' (NICOL: 512 envs, ...); learner and network
+presets' (nicol_slide: 2,560 envs × 1 cycle, nicol_lift: 2,048 × 2, ...); learner and network
 options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to every run.
 
 Faithful to the paper by default: no held starts. `--held-starts` runs nicol_lift with half of
@@ -26,14 +26,16 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 run dir, new/resume/done/stale) and its estimated time on one H100 running the runs one after another
 (`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
 (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
-whose latest checkpoint, or whose metrics.csv (results/ keeps no checkpoints), is at its epochs
-is skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint
-starts again. A stale run (`grid.stale`: its config.json records other physics than its task's today,
-or none, or a config that differs from its arm's today in a field that changes results, e.g. num_envs)
+whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's checkpoints), is at its epochs
+is skipped, an interrupted one resumes from its latest checkpoint (with an empty replay buffer where the
+checkpoint was carried without it, `experiments.carry`), one without a checkpoint starts again. A stale run
+(`grid.stale`: its config.json records other physics than its task's today, or none, or a config that differs
+from its arm's today in a field that changes results, e.g. num_envs)
 is neither skipped nor resumed: while any run is stale, training refuses to start (exit 2, one
 `error: ...` line naming it; nothing trained, no run folder changed): move the stale folders away or
-pass another `--out`. The persistent compilation cache is not used, so that every run's
-`wall_time_with_compile` (metrics.csv; `wall_time` starts after compiling) holds a whole compilation.
+pass another `--out`. Every run compiles into the persistent compilation cache (`cli.start_run`), so a run
+resumed or repeated where its program is cached compiles in less time; its `wall_time_with_compile`
+(metrics.csv; `wall_time` starts after compiling) holds whatever compiling took.
 
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
 per task, one line per agent: eval success against env steps per seed, mean ± std over seeds;
@@ -42,8 +44,9 @@ per task, one line per agent: eval success against env steps per seed, mean ± s
 the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
 `wall_time`, marked "*": compilation not counted; a stale run's cell is marked "†", and a line below
 the table counts them; another names the runs resumed with an empty replay buffer, `grid.fresh_buffer_note`,
-and the epochs a run's metrics.csv lacks). `--report` trains nothing and writes only these, e.g. from run folders whose
-checkpoints were not kept (results/ holds no checkpoints: .gitignore).
+and the epochs a run's metrics.csv lacks; last, the command that regenerates them, `regenerate_command`). `--report`
+trains nothing and writes only these, e.g. from run folders whose checkpoints were not kept (results/ keeps none but
+an unfinished run's carried one: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
@@ -54,10 +57,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from typing import Any, Collection, Sequence
 
-from bidal_jax.config import AGENTS, ConfigError
+from bidal_jax.config import AGENTS, ConfigError, option
 from bidal_jax.run import multihost
 from experiments import cli, report
 from experiments.paper import grid
@@ -251,9 +255,23 @@ def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
     return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}." + absent_line
 
 
-def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: dict[str, str | None]) -> str | None:
+def regenerate_command(args: argparse.Namespace, rest: Sequence[str], out: str) -> str:
+    """The command that rewrites curves.png/.csv and table.md from the run folders alone: `--report` with the
+    options that choose the runs, their budget and the window of the final success, and the learner and network
+    options passed through `rest` (they set the configs the stale check compares)."""
+    parser = build_parser()
+    chosen = [f"{option(name)} {getattr(args, name)}" for name in ("tasks", "agents", "seeds", "seed", "epochs",
+                                                                          "last_n")
+              if getattr(args, name) != parser.get_default(name)]
+    held = ["--held-starts"] if args.held_starts else []
+    return " ".join([PROG, "--report", *chosen, *held, *map(shlex.quote, rest), f"--out {out}"])
+
+
+def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: dict[str, str | None],
+                 command: str) -> str | None:
     """curves.png/.csv in `out` from the runs that have epochs; returns the text of table.md (None
-    if none has), its stale runs marked (`today`: env name -> its physics fingerprint today)."""
+    if none has), its stale runs marked (`today`: env name -> its physics fingerprint today), ending with
+    `command`, which regenerates them."""
     runs = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
@@ -275,6 +293,8 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         f"Total wall time of the runs: {duration(total)}.",
         "",
         gaps(arms, runs),
+        "",
+        f"Regenerate from the run folders: `{command}`",
         "",
     ])
 
@@ -303,7 +323,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         # each task's physics today: of the envs built to train, else (--report) built for it
         today = ({arm.given["env"]: envs[arm.name].physics_id for arm in arms} if envs
                  else grid.physics_today(arm.given["env"] for arm in arms))
-        grid.write_table(out, plot_results(out, arms, title, args.last_n, today))
+        grid.write_table(out, plot_results(out, arms, title, args.last_n, today, regenerate_command(args, rest, out)))
     return code
 
 

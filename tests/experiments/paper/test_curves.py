@@ -4,6 +4,7 @@ task, resuming, stale runs, refusals, the held-starts variant and the report."""
 
 import csv
 import os
+import shlex
 
 import jax
 import pytest
@@ -228,6 +229,14 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
     assert "| multimodal_bidal | 0.350 ± 0.050, 80 s, epoch 2 of 3 | — |" in table
     assert "Total wall time of the runs: 140 s (2.3 min)." in table and "†" not in table  # no run is stale
     assert "Missing: ur5_reach/multimodal_bidal. Unfinished: planar_reach/multimodal_bidal (epoch 2 of 3)." in table
+    # the last line is the command that writes the same table again from the run folders
+    command = table.splitlines()[-1]
+    assert command == (f"Regenerate from the run folders: `python -m experiments.paper.curves --report --tasks "
+                       f"planar_reach,ur5_reach --agents proprio_baseline,multimodal_bidal --seeds 2 --epochs 3 "
+                       f"--last-n 2 --out {out}`")
+    (out / "table.md").unlink()
+    assert curves.main(shlex.split(command.split("`")[1])[3:]) == 0
+    assert (out / "table.md").read_text() == table
     with open(out / "curves.png", "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
     with open(out / "curves.csv", newline="") as f:
