@@ -59,13 +59,13 @@ def carry(run_dir: str, dest: str) -> int:
         raise CheckpointError(f"no checkpoint in {directory}: nothing to resume from")
     if os.path.lexists(dest):
         raise ConfigError(f"--out {dest} exists; name a folder that does not (nothing is overwritten)")
-    tmp = dest.rstrip(os.sep) + TMP_SUFFIX
+    tmp, latest = dest.rstrip(os.sep) + TMP_SUFFIX, os.path.join(directory, str(step))
     shutil.rmtree(tmp, ignore_errors=True)  # a copy of ours that an earlier failure left
     try:
         with rundir.disk_errors(f"copying {run_dir} to {tmp}", f"{dest} was not written"):
             shutil.copytree(run_dir, tmp, ignore=shutil.ignore_patterns("checkpoints", rundir.LOCK_FILE))
-            shutil.copytree(os.path.join(directory, str(step)), os.path.join(tmp, "checkpoints", str(step)),
-                            ignore=lambda where, _: ["buffer"] if where == os.path.join(directory, str(step)) else [])
+            shutil.copytree(latest, os.path.join(tmp, "checkpoints", str(step)),
+                            ignore=lambda where, _: ["buffer"] if where == latest else [])
             os.rename(tmp, dest)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
