@@ -29,8 +29,9 @@ class PatchConv(nn.Module):
 
     Same result and parameter layout (kernel [k, k, C, F], bias [F]) as `nn.Conv`, but
     XLA's CPU backend runs this form 3-4× faster inside the training loop's `lax.scan`,
-    where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `native` computes the same convolution with XLA's
-    convolution op instead (`NetworkConfig.conv_impl`; cuDNN on a GPU), same parameters.
+    where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `native`
+    computes the same convolution with XLA's convolution op instead (`NetworkConfig.conv_impl`;
+    cuDNN on a GPU), same parameters.
     """
 
     features: int
