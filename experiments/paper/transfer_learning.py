@@ -25,11 +25,11 @@ against env steps per seed, mean ± std over seeds, both arms; `experiments/repo
 success; for the difference transfer − scratch of AUC and of env steps to 0.3 and 0.5, per seed
 and censored at the run's total env steps where a seed never gets there, a 95 % bootstrap
 interval over seeds and Welch's t interval, `experiments/stats.py`; and the command that
-regenerates it). Each run's metrics are its `metrics.csv`; times are its `wall_time_with_compile`
-(compilation included), or its `wall_time` (compilation not counted, said in the table) for runs
-recorded before that column. The persistent compilation cache is not used: both arms' programs
-are identical, and the second would otherwise skip its compilation. The source's training time
-is not in the transfer arm's times.
+regenerates it). Each run's metrics are its `metrics.csv`; times are its `wall_time`: seconds of
+training, compilation not counted. Every training command compiles into the persistent compilation
+cache (`cli.start_run`) and both arms' programs are identical, so whichever arm compiles second skips
+most of it; counting compilation would favour that arm. The source's training time is not in the
+transfer arm's times.
 
 Resumable: run the same command again. A run whose latest checkpoint is at its epoch count is
 skipped, an interrupted one resumes from its latest checkpoint, one without a checkpoint starts
@@ -122,15 +122,6 @@ def _cell(hit: report.Reached | None) -> tuple[str, str]:
     return f"{hit.env_steps:,.0f} (epoch {hit.epoch})", f"{hit.wall_time:,.0f} s"
 
 
-def _counted(with_compile: dict[str, bool]) -> str:
-    """What the arms' times count (`report.with_compile_times`: arm name -> whether with compilation)."""
-    without = [name for name, included in with_compile.items() if not included]
-    if not without:
-        return "compilation included"
-    return (f"compilation included but for {', '.join(without)}, whose metrics.csv predates "
-            "`wall_time_with_compile`: their `wall_time` starts after compiling")
-
-
 def results_table(curves: Sequence[report.Curve], last_n: int) -> str:
     """Markdown, one row per arm: env steps and wall time to each threshold (first epoch whose seed
     mean reaches it), normalised AUC, final success (mean ± std over seeds of the last `last_n` epochs)."""
@@ -192,20 +183,18 @@ def regenerate_command(args: argparse.Namespace, out: str) -> str:
 
 def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
     """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
-    loaded = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
-    if not loaded:
+    runs = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
+    if not runs:
         return None
-    timed = {name: report.with_compile_times(r) for name, r in loaded.items()}
-    runs = {name: r for name, (r, _) in timed.items()}
-    counted = _counted({name: c for name, (_, c) in timed.items()})
     curves = report.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
     report.plot(curves, os.path.join(out, "success"), title=title)
     notes = [
         f"# {TARGET_ENV}: {title}",
         "",
         "Success is the seed mean of each epoch's eval success; a threshold is reached at the first epoch whose "
-        f"mean is at least it. Times are each run's seconds from the start of its training ({counted}; no "
-        "persistent compilation cache). AUC is the mean success over the epochs run.",
+        "mean is at least it. Times are each run's seconds of training (`wall_time`), compilation not counted: the "
+        "arms' programs are the same, and the persistent compilation cache spares the second of them most of its "
+        "compiling. AUC is the mean success over the epochs run.",
         "",
         results_table(curves, last_n),
         "",
