@@ -314,7 +314,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         envs = grid.make_envs(arms)
         print(plan_text(arms, envs), flush=True)
         if args.dry_run:
-            print("dry run: nothing trained or written")
+            print(grid.DRY_RUN)
             return 0
         code = grid.train_arms(arms, envs, args.quiet)
     variant = f", {HELD_TASK} with held starts" if args.held_starts else ""

@@ -39,6 +39,7 @@ PASS_THROUGH = frozenset(
 # random draws differ, not its budget, data or learner), and how its convs are computed (conv_impl: the same
 # function and parameters, float rounding apart)
 NOT_COMPARED = frozenset({"run_dir", "init_from", "checkpoint_every", "env_shards", "conv_impl"})
+DRY_RUN = "dry run: nothing trained or written"  # the last line of every experiment's --dry-run
 
 
 @dataclasses.dataclass(frozen=True)

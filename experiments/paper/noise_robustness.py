@@ -18,7 +18,8 @@ epochs than its budget (`protocol.budget`: the env and agent preset's, or its co
 the mean over runs; and the command that regenerates it),
 `curves.png` and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
 `--report` trains nothing and writes only these, from the run folders (results/ keeps no
-checkpoints: training again there would start the runs afresh).
+checkpoints: training again there would start the runs afresh). `--dry-run` prints the plan, each
+program with its state (new, resume, done or stale; `grid.plan_line`), and trains and writes nothing.
 
 Resumable: a finished agent is skipped, an interrupted one resumed from its latest
 checkpoint, and a stale one (`grid.stale`: made on other physics or with another config) refused
@@ -170,8 +171,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint-every", type=int, default=None,
                         help="save a checkpoint every K epochs (default: the run's; a run's checkpoints on the "
                         "nicol_slide preset are GBs, and their cadence does not make a run stale)")
-    parser.add_argument("--report", action="store_true", help="train nothing: write table.md, curves.png and "
-                        "curves.csv from the run folders in --out")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--report", action="store_true", help="train nothing: write table.md, curves.png and "
+                      "curves.csv from the run folders in --out")
+    mode.add_argument("--dry-run", action="store_true", help="print the plan (each program's state: new, resume, "
+                      "done or stale); train and write nothing")
     parser.add_argument("--quiet", action="store_true")
     return parser
 
@@ -198,13 +202,18 @@ def main(argv: list[str] | None = None) -> int:
         multihost.initialize()
     except ConfigError as err:
         return cli.exit_code(err)
-    os.makedirs(args.out, exist_ok=True)
     programs = (f"one program of {len(KAPPAS) * args.runs} runs per agent" if kappas is None
                 else f"one program of {args.runs} runs per agent and κ")
     print(f"noise experiment: {args.env}, agents {', '.join(args.agents)}, κ {kappas or KAPPAS} × {args.runs} runs "
           f"each ({programs}), {given['epochs']} epochs, into {args.out}")
     arms = make_arms(args.agents, kappas, args.out, given, args.runs)
-    code = grid.train_arms(arms, grid.make_envs(arms), args.quiet)
+    envs = grid.make_envs(arms)
+    print("\n".join(["plan:", *(grid.plan_line(arm, envs[arm.name]) for arm in arms)]), flush=True)
+    if args.dry_run:
+        print(grid.DRY_RUN)
+        return 0
+    os.makedirs(args.out, exist_ok=True)
+    code = grid.train_arms(arms, envs, args.quiet)
     if code:
         return code
     if multihost.is_main():  # one process writes the results

@@ -2,7 +2,7 @@
 from the representation of a sliding run.
 
     python -m experiments.paper.transfer_learning [--seeds 5] [--out results/transfer] [--source RUN_DIR]
-        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch]
+        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch] [--dry-run]
         [any learner or network option of experiments.run]
 
 Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
@@ -40,7 +40,8 @@ as they can. `--arms` trains
 only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
 scratch arm does not need the source), then `--arms transfer`; any of them writes the results
 of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
-whose checkpoints were deleted).
+whose checkpoints were deleted). `--dry-run` prints the plan, each run with its state (new, resume,
+done or stale; `grid.plan_line`), and trains and writes nothing.
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
@@ -86,6 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
                         "runs can be trained by separate processes at once; 'none' only writes the results")
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
+    parser.add_argument("--dry-run", action="store_true", help="print the plan (each run's state: new, resume, "
+                        "done or stale); train and write nothing")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -224,6 +227,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cli.exit_code(err)
     envs = grid.make_envs(arms)
     print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
+    if args.dry_run:
+        print(grid.DRY_RUN)
+        return 0
     # the transfer arm starts from the source's parameters: a stale source is refused too, trained or not
     source = [arm for arm in arms if arm.name == "source" and "transfer" in train_names]
     try:

@@ -36,11 +36,26 @@ def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, c
     assert trained.config.train.noise_segments == "q" and trained.config.run.checkpoint_every == 1
     np.testing.assert_array_equal(noise.run_kappas(2), np.float32([0.05, 0.05, 0.10, 0.10, 0.15, 0.15]))
     capsys.readouterr()
+    assert noise.main([*TINY, "--out", out, "--dry-run"]) == 0
+    assert f"in {run_dir} [done]" in capsys.readouterr().out
     assert noise.main([*TINY, "--out", out]) == 0
     assert "finished" in capsys.readouterr().out
     os.remove(os.path.join(out, "table.md"))
     assert noise.main(["--report", "--out", out]) == 0  # trains nothing: the table again, from the run folders
     assert open(os.path.join(out, "table.md")).read() == text
+
+
+def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
+    out = tmp_path / "noise"
+    assert noise.main([*TINY, "--out", str(out), "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert not out.exists()
+    assert lines[1:] == [
+        "plan:",
+        "planar_reach proprio_baseline, 6 seed(s), exploration starts 0; 2 epochs × 200 = 400 env steps per seed in "
+        f"{out}/proprio_baseline [new]",
+        "dry run: nothing trained or written",
+    ]
 
 
 def test_steadiness_is_each_runs_std_over_the_window_and_short_runs_are_marked():

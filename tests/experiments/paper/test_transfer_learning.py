@@ -85,6 +85,18 @@ def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_p
     assert "| transfer | 2 | 1 | 100 |" in (out / "table.md").read_text()  # from whatever is there
 
 
+def test_dry_run_prints_each_runs_state_and_trains_and_writes_nothing(tmp_path, no_nicol, fake_run, capsys):
+    out = tmp_path / "out"
+    fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)  # done
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"][:1], 1)  # interrupted at epoch 1 of 3
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--dry-run"]) == 0
+    printed = capsys.readouterr().out
+    assert no_nicol == [] and sorted(p.relative_to(out) for p in out.rglob("*")) == before
+    assert f"{out}/source [done]" in printed and f"{out}/transfer [resume, checkpoint at epoch 1]" in printed
+    assert f"{out}/scratch [new]" in printed and printed.endswith("dry run: nothing trained or written\n")
+
+
 def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol, fake_run):
     out = tmp_path / "out"
     assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "scratch"]) == 0
