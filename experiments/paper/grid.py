@@ -226,6 +226,11 @@ def plan_line(arm: Arm, env) -> str:
     )
 
 
+def plan(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
+    """The plan of an experiment whose runs have names: "plan:", then "<name>: `plan_line`" per run."""
+    return "\n".join(["plan:", *(f"{arm.name}: {plan_line(arm, envs[arm.name])}" for arm in arms)])
+
+
 def carried_without_buffer(arm: Arm) -> bool:
     """Whether the run's latest checkpoint lacks its replay buffer (a run carried from another machine or sitting,
     `experiments.carry`): training resumes it with an empty buffer, as `--resume --fresh-buffer` does."""

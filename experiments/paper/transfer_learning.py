@@ -41,7 +41,7 @@ only the named runs: `--arms source` and `--arms scratch` can run as two process
 scratch arm does not need the source), then `--arms transfer`; any of them writes the results
 of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
 whose checkpoints were deleted). `--dry-run` prints the plan, each run with its state (new, resume,
-done or stale; `grid.plan_line`), and trains and writes nothing.
+done or stale; `grid.plan`), and trains and writes nothing.
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
@@ -226,7 +226,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         return cli.exit_code(err)
     envs = grid.make_envs(arms)
-    print("\n".join(["plan:", *(f"{arm.name}: {grid.plan_line(arm, envs[arm.name])}" for arm in arms)]), flush=True)
+    print(grid.plan(arms, envs), flush=True)
     if args.dry_run:
         print(grid.DRY_RUN)
         return 0

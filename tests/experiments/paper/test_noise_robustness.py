@@ -52,8 +52,8 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
     assert not out.exists()
     assert lines[1:] == [
         "plan:",
-        "planar_reach proprio_baseline, 6 seed(s), exploration starts 0; 2 epochs × 200 = 400 env steps per seed in "
-        f"{out}/proprio_baseline [new]",
+        "proprio_baseline: planar_reach proprio_baseline, 6 seed(s), exploration starts 0; 2 epochs × 200 = 400 env "
+        f"steps per seed in {out}/proprio_baseline [new]",
         "dry run: nothing trained or written",
     ]
 
