@@ -12,7 +12,7 @@
 
 Times: metrics.csv's `wall_time` counts from when the training programs were built (compilation
 not counted), `wall_time_with_compile` from when training began (compilation included; absent
-from runs recorded before it); `with_compile_times(run)` gives the tables the latter where a run has it.
+from runs recorded before it); `last_time(run)` gives the tables the latter where a run has it.
 
 Used by `python -m experiments.plot`, the paper experiments and the benchmarks. It imports
 neither JAX nor the environments (matplotlib only when it draws), so that it stays light.
@@ -90,19 +90,12 @@ def physics_of(config: dict) -> list[str]:
     return [str(p) for p in physics] if isinstance(physics, list) else []
 
 
-def with_compile_times(run: dict) -> tuple[dict, bool]:
-    """(`run` whose "wall_time" counts its compilation, True) where its metrics.csv has
-    `wall_time_with_compile`; else (`run` as it is, False: its times start after compiling)."""
-    if run[WITH_COMPILE] is None:
-        return run, False
-    return {**run, "wall_time": run[WITH_COMPILE]}, True
-
-
 def last_time(run: dict) -> tuple[float, bool]:
     """(The run's last time, whether it counts its compilation): its last `wall_time_with_compile`, or its last
-    `wall_time` where metrics.csv predates that column (`with_compile_times`)."""
-    timed, with_compile = with_compile_times(run)
-    return float(timed["wall_time"][-1]), with_compile
+    `wall_time` (its times start after compiling) where metrics.csv predates that column."""
+    if run[WITH_COMPILE] is None:
+        return float(run["wall_time"][-1]), False
+    return float(run[WITH_COMPILE][-1]), True
 
 
 @dataclasses.dataclass(frozen=True)
