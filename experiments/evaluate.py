@@ -11,8 +11,9 @@ for that epoch; `--seed S` draws other episodes.
 A run trained with observation noise (paper Sec. IV-B, Eq. 9: `noise_segments`, κ per seed) is
 evaluated under it, as training's evaluation is: κ and σ are restored from the checkpoint
 (`bidal_jax.run.policy.load_noise`) and each step's noise is drawn as in training, so the logged success is
-reproduced too. `--clean` evaluates without noise; the output says which. The video's agent sees
-clean observations.
+reproduced too. `--clean` evaluates without noise; `--kappa K` under the run's σ scaled by K instead
+of the run's κ (how far a policy trained at one noise level holds at others); the output says which. The
+video's agent sees clean observations.
 
 `--video out.mp4` also renders `--video-episodes` episodes of seed 0 with MuJoCo's own
 renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view.
@@ -72,15 +73,35 @@ def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
     return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys, noise_state))
 
 
-def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, clean: bool) -> str:
-    """What the evaluated agents observed: the run's noise (κ per seed, σ restored) or clean observations."""
+def with_kappa(noise_state: noise.NoiseState | None, kappa: float) -> noise.NoiseState:
+    """`noise_state` (κ [S], σ [S, F] of a run) with every seed's κ set to `kappa`, σ kept. Raises ValueError
+    when `kappa` is negative or not finite, or the run has no noise state (no σ to scale)."""
+    if not math.isfinite(kappa) or kappa < 0:
+        raise ValueError(f"--kappa {kappa}: must be a finite number >= 0 (e.g. 0.3 for 30 % of σ)")
+    if noise_state is None:
+        raise ValueError("--kappa: the run trained without observation noise, so it has no σ to scale; "
+                         "allowed only for a run trained with --noise-segments")
+    return noise_state.replace(kappa=np.full_like(np.asarray(noise_state.kappa), kappa))
+
+
+def _kappas(noise_state: noise.NoiseState) -> str:
+    return ", ".join(f"{k:g}" for k in np.unique(np.asarray(noise_state.kappa)))
+
+
+def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, clean: bool,
+               run_noise: noise.NoiseState | None = None) -> str:
+    """What the evaluated agents observed: the run's noise (κ per seed, σ restored), clean observations, or
+    (`run_noise`: the run's own noise state, given when --kappa replaced its κ) the run's σ with another κ."""
     if not noise.parse_segments(trained.config.train.noise_segments):
         return "observations: clean (the run trained without observation noise)"
     if clean:
         return f"observations: clean (--clean; the run trained with noise on {trained.config.train.noise_segments})"
-    kappas = ", ".join(f"{k:g}" for k in np.unique(np.asarray(noise_state.kappa)))
-    return (f"observations: noisy as in training's evaluation, κ {kappas} on {trained.config.train.noise_segments}, "
-            f"σ restored from checkpoint {trained.step} (paper Eq. 9)")
+    if run_noise is not None:
+        return (f"observations: noisy with κ {_kappas(noise_state)} (--kappa; the run trained with κ "
+                f"{_kappas(run_noise)}) on {trained.config.train.noise_segments}, σ restored from checkpoint "
+                f"{trained.step} (paper Eq. 9)")
+    return (f"observations: noisy as in training's evaluation, κ {_kappas(noise_state)} on "
+            f"{trained.config.train.noise_segments}, σ restored from checkpoint {trained.step} (paper Eq. 9)")
 
 
 def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
@@ -140,6 +161,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="evaluate without the run's observation noise "
         "(default: a run trained with noise is evaluated under it, as training's evaluation is)",
     )
+    parser.add_argument(
+        "--kappa",
+        type=float,
+        default=None,
+        help="evaluate under the run's σ scaled by this noise coefficient (κ of Eq. 9, e.g. 0.3) instead of "
+        "the run's κ; for a run trained with observation noise",
+    )
     parser.add_argument("--json", default="", help="also write the results to this JSON file")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -162,13 +190,16 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError(
                 f"--episodes {args.episodes} / --video-episodes {args.video_episodes}: must be positive integers"
             )
+        if args.clean and args.kappa is not None:
+            raise ValueError("--clean and --kappa: give one (--clean is the same as --kappa 0)")
         if args.video and not args.video.endswith(".mp4"):
             raise ValueError(f"--video {args.video}: must name an .mp4 file")
         size = _video_size(args.video_size)
         if not os.path.isdir(args.run_dir):
             raise ValueError(f"--run-dir {args.run_dir}: no such directory")
         trained = load_policy(args.run_dir, args.checkpoint)
-        noise_state = None if args.clean else load_noise(args.run_dir, trained)
+        run_noise = None if args.clean else load_noise(args.run_dir, trained)
+        noise_state = run_noise if args.kappa is None else with_kappa(run_noise, args.kappa)
     except (ValueError, CheckpointError) as err:
         return cli.exit_code(err)
     run = trained.config.run
@@ -179,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         keys = jax.random.split(jax.random.PRNGKey(args.seed), trained.seeds)
     success = evaluate_seeds(env, trained, keys, args.episodes, noise_state)
     mean, low, high = mean_interval(success)
-    observed = noise_line(trained, noise_state, args.clean)
+    observed = noise_line(trained, noise_state, args.clean, None if args.kappa is None else run_noise)
     print(f"{run.env} / {run.agent}, checkpoint {trained.step}, {args.episodes} episodes per seed")
     print(observed)
     for i, row in enumerate(success):

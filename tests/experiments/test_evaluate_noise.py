@@ -72,3 +72,37 @@ def test_the_restored_noise_changes_only_the_noised_features(noisy):
                                      record=lambda step: (step.obs["proprio"], step.state.obs["proprio"]))
     changed = np.asarray(seen != true).any(axis=(0, 1))
     assert changed[indices].all() and changed.sum() == len(indices)
+
+
+def test_kappa_rescales_the_runs_noise_and_zero_is_clean(noisy, tmp_path, capsys):
+    run_dir, _ = noisy
+    results = {}
+    for name, extra in (("clean", ["--clean"]), ("zero", ["--kappa", "0"]), ("loud", ["--kappa", "2.5"])):
+        path = str(tmp_path / f"{name}.json")
+        assert evaluate.main(["--run-dir", run_dir, "--episodes", str(EVAL_ENVS), "--json", path, "--quiet",
+                              *extra]) == 0
+        results[name] = json.load(open(path))
+    out = capsys.readouterr().out
+    assert f"noisy with κ 2.5 (--kappa; the run trained with κ {KAPPA:g}) on q" in out
+    assert results["zero"]["per_seed"] == results["clean"]["per_seed"]
+    trained = load_policy(run_dir)
+    loud = evaluate.with_kappa(load_noise(run_dir, trained), 2.5)
+    np.testing.assert_array_equal(np.asarray(loud.kappa), np.full(SEEDS, 2.5, np.float32))
+    np.testing.assert_array_equal(np.asarray(loud.sigma), np.asarray(load_noise(run_dir, trained).sigma))
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--kappa", "-0.1"], "--kappa -0.1: must be a finite number >= 0"),
+    (["--kappa", "nan"], "--kappa nan: must be a finite number >= 0"),
+    (["--kappa", "0.1", "--clean"], "--clean and --kappa: give one"),
+])
+def test_bad_kappa_is_one_error_line(noisy, capsys, extra, message):
+    run_dir, _ = noisy
+    assert evaluate.main(["--run-dir", run_dir, "--quiet", *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+
+
+def test_kappa_needs_a_run_trained_with_noise():
+    with pytest.raises(ValueError, match="trained without observation noise"):
+        evaluate.with_kappa(None, 0.1)
