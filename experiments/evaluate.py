@@ -96,12 +96,11 @@ def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, cle
         return "observations: clean (the run trained without observation noise)"
     if clean:
         return f"observations: clean (--clean; the run trained with noise on {trained.config.train.noise_segments})"
+    where = f"on {trained.config.train.noise_segments}, σ restored from checkpoint {trained.step} (paper Eq. 9)"
     if run_noise is not None:
         return (f"observations: noisy with κ {_kappas(noise_state)} (--kappa; the run trained with κ "
-                f"{_kappas(run_noise)}) on {trained.config.train.noise_segments}, σ restored from checkpoint "
-                f"{trained.step} (paper Eq. 9)")
-    return (f"observations: noisy as in training's evaluation, κ {_kappas(noise_state)} on "
-            f"{trained.config.train.noise_segments}, σ restored from checkpoint {trained.step} (paper Eq. 9)")
+                f"{_kappas(run_noise)}) {where}")
+    return f"observations: noisy as in training's evaluation, κ {_kappas(noise_state)} {where}"
 
 
 def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],

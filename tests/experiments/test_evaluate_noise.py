@@ -85,10 +85,10 @@ def test_kappa_rescales_the_runs_noise_and_zero_is_clean(noisy, tmp_path, capsys
     out = capsys.readouterr().out
     assert f"noisy with κ 2.5 (--kappa; the run trained with κ {KAPPA:g}) on q" in out
     assert results["zero"]["per_seed"] == results["clean"]["per_seed"]
-    trained = load_policy(run_dir)
-    loud = evaluate.with_kappa(load_noise(run_dir, trained), 2.5)
+    restored = load_noise(run_dir, load_policy(run_dir))
+    loud = evaluate.with_kappa(restored, 2.5)
     np.testing.assert_array_equal(np.asarray(loud.kappa), np.full(SEEDS, 2.5, np.float32))
-    np.testing.assert_array_equal(np.asarray(loud.sigma), np.asarray(load_noise(run_dir, trained).sigma))
+    np.testing.assert_array_equal(np.asarray(loud.sigma), np.asarray(restored.sigma))
 
 
 @pytest.mark.parametrize("extra, message", [
