@@ -59,11 +59,14 @@ def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
 
 
 def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
-                   noise_state: noise.NoiseState | None = None) -> np.ndarray:
+                   noise_state: noise.NoiseState | None = None,
+                   segments: tuple[str, ...] | None = None) -> np.ndarray:
     """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training; with
-    `noise_state` (κ [S], σ [S, F]) each seed sees its observation noise as training's evaluation does."""
-    indices = noise.feature_indices(env.observation_spec.proprio_segments,
-                                    noise.parse_segments(trained.config.train.noise_segments))
+    `noise_state` (κ [S], σ [S, F]) each seed sees its observation noise as training's evaluation does,
+    on the run's noise segments or on `segments` (F features in their order)."""
+    if segments is None:
+        segments = noise.parse_segments(trained.config.train.noise_segments)
+    indices = noise.feature_indices(env.observation_spec.proprio_segments, segments)
 
     def one(params, key, seed_noise):
         policy = acting.make_policy(trained.networks, trained.config, params)

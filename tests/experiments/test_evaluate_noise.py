@@ -16,6 +16,7 @@ import envs_mjx
 from bidal_jax import acting, noise
 from bidal_jax.run.policy import load_noise, load_policy
 from experiments import evaluate, run
+from experiments.probes import noise_reliance
 from tests.helpers import restored_state
 
 SEEDS, EPOCHS, EVAL_ENVS, KAPPA = 2, 2, 16, 0.5
@@ -106,3 +107,35 @@ def test_bad_kappa_is_one_error_line(noisy, capsys, extra, message):
 def test_kappa_needs_a_run_trained_with_noise():
     with pytest.raises(ValueError, match="trained without observation noise"):
         evaluate.with_kappa(None, 0.1)
+
+
+def test_noise_reliance_noises_each_group_on_its_own_scale(noisy, tmp_path):
+    run_dir, _ = noisy
+    trained = load_policy(run_dir)
+    env = envs_mjx.make("planar_reach", render=False)
+    segments = env.observation_spec.proprio_segments
+    sigma = noise_reliance.clean_sigma(env, trained, trained.eval_key, EVAL_ENVS)
+    assert sigma.shape == (SEEDS, env.observation_spec.proprio_size) and (sigma > 0).all()
+    state = noise_reliance.noise_on(sigma, segments, ("qdot",), 2.0)
+    qdot = noise.feature_indices(segments, ("qdot",))
+    np.testing.assert_array_equal(np.asarray(state.sigma), sigma[:, qdot])
+    np.testing.assert_array_equal(np.asarray(state.kappa), np.full(SEEDS, 2.0, np.float32))
+    path = str(tmp_path / "table.md")
+    assert noise_reliance.main(["--run-dir", run_dir, "--episodes", str(EVAL_ENVS), "--kappas", "0.5,4",
+                                "--groups", "q;qdot", "--out", path]) == 0
+    text = open(path).read()
+    assert "| noised segments | κ 0.5 | κ 4 |" in text
+    assert [line.split(" |")[0] for line in text.splitlines() if line.startswith("| q")] == ["| q", "| qdot"]
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--groups", "q;;qdot"], "--groups 'q;;qdot': must be ';'-separated groups"),
+    (["--groups", "q,hand"], "unknown proprio segment 'hand'"),
+    (["--kappas", "0.1,0"], "--kappas '0.1,0': must be a comma list of finite numbers > 0"),
+    (["--episodes", "0"], "--episodes 0: must be a positive integer"),
+])
+def test_noise_reliance_bad_input_is_one_error_line(noisy, capsys, extra, message):
+    run_dir, _ = noisy
+    assert noise_reliance.main(["--run-dir", run_dir, *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
