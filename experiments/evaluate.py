@@ -24,7 +24,6 @@ Exit codes: 0 done; 2 bad input (one `error: ...` line).
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import os
@@ -34,46 +33,11 @@ import jax
 import numpy as np
 
 import envs_mjx
-from bidal_jax import acting, noise
+from bidal_jax import noise
 from bidal_jax.run.checkpoint import CheckpointError
-from bidal_jax.run.policy import TrainedPolicy, load_noise, load_policy
-from experiments import cli, stats
-
-Z95 = 1.959963984540054
-
-
-def wilson_interval(successes: int, n: int) -> tuple[float, float]:
-    """95 % Wilson score interval of a binomial success rate."""
-    p = successes / n
-    centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
-    half = Z95 * math.sqrt(p * (1 - p) / n + Z95**2 / (4 * n * n)) / (1 + Z95**2 / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
-
-
-def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
-    """(mean, low, high) of the seeds' success rates [S, N]: Student-t over seeds, or Wilson for one seed."""
-    rates = success.mean(axis=1)
-    if len(rates) == 1:
-        return (float(rates[0]), *wilson_interval(int(success.sum()), success.size))
-    return stats.student_interval(rates)
-
-
-def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
-                   noise_state: noise.NoiseState | None = None,
-                   segments: tuple[str, ...] | None = None) -> np.ndarray:
-    """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training; with
-    `noise_state` (κ [S], σ [S, F]) each seed sees its observation noise as training's evaluation does,
-    on the run's noise segments or on `segments` (F features in their order)."""
-    if segments is None:
-        segments = noise.parse_segments(trained.config.train.noise_segments)
-    indices = noise.feature_indices(env.observation_spec.proprio_segments, segments)
-
-    def one(params, key, seed_noise):
-        policy = acting.make_policy(trained.networks, trained.config, params)
-        observe = None if seed_noise is None else functools.partial(noise.observe, seed_noise, indices)
-        return acting.evaluate(env, policy, key, episodes, observe=observe)
-
-    return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys, noise_state))
+from bidal_jax.run.policy import TrainedPolicy, evaluate_seeds, load_noise, load_policy
+from experiments import cli
+from experiments.stats import mean_interval, wilson_interval
 
 
 def with_kappa(noise_state: noise.NoiseState | None, kappa: float) -> noise.NoiseState:

@@ -1,5 +1,6 @@
-"""95 % intervals over seeds for the experiments' tables: a Student-t interval of a mean, and for the
-difference of two arms' means (A − B) a percentile bootstrap over seeds and Welch's t interval.
+"""95 % intervals over seeds for the experiments' tables: a Student-t interval of a mean (Wilson's score
+interval for one seed's success rate), and for the difference of two arms' means (A − B) a percentile
+bootstrap over seeds and Welch's t interval.
 
 The paper (Sec. IV) reports means and standard deviations over runs without intervals; these say how
 far our few seeds (5 a run) pin a figure or a difference down. All are pure functions of their inputs:
@@ -15,6 +16,7 @@ import numpy as np
 
 LEVEL = 0.95
 RESAMPLES = 10_000
+Z95 = 1.959963984540054  # the standard normal's 97.5th percentile
 BOOTSTRAP_SEED = 0
 
 
@@ -35,6 +37,22 @@ def student_interval(values: np.ndarray) -> tuple[float, float, float]:
         return mean, math.nan, math.nan
     half = stats.t.ppf(0.5 + LEVEL / 2, values.size - 1) * values.std(ddof=1) / math.sqrt(values.size)
     return mean, float(mean - half), float(mean + half)
+
+
+def wilson_interval(successes: int, n: int) -> tuple[float, float]:
+    """95 % Wilson score interval of a binomial success rate."""
+    p = successes / n
+    centre = (p + Z95**2 / (2 * n)) / (1 + Z95**2 / n)
+    half = Z95 * math.sqrt(p * (1 - p) / n + Z95**2 / (4 * n * n)) / (1 + Z95**2 / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
+    """(mean, low, high) of the seeds' success rates [S, N]: Student-t over seeds, or Wilson for one seed."""
+    rates = success.mean(axis=1)
+    if len(rates) == 1:
+        return (float(rates[0]), *wilson_interval(int(success.sum()), success.size))
+    return student_interval(rates)
 
 
 def bootstrap_difference(a: Sequence[np.ndarray], b: Sequence[np.ndarray], resamples: int = RESAMPLES,

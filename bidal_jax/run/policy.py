@@ -4,20 +4,23 @@ Only what acting needs is read, with Orbax partial restore: the encoder and acto
 parameters, the normalisers and the evaluation key. The replay buffer, optimiser states and
 target networks are not, so a checkpoint whose buffer files were deleted still loads
 (`python -m experiments.evaluate` is its command line). `load_noise` restores, for a run trained
-with observation noise, the κ and σ its checkpoint's evaluation saw (paper Eq. 9).
+with observation noise, the κ and σ its checkpoint's evaluation saw (paper Eq. 9), and `evaluate_seeds`
+runs every seed's deterministic policy, under that noise or another.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 
 import chex
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from bidal_jax import noise, normalizer
-from bidal_jax.acting import ACTING_NETWORKS, ActingParams, Policy, make_policy
+from bidal_jax.acting import ACTING_NETWORKS, ActingParams, Policy, evaluate, make_policy
 from bidal_jax.config import Config
 from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
 from bidal_jax.run import checkpoint
@@ -102,3 +105,21 @@ def load_noise(run_dir: str, trained: TrainedPolicy) -> noise.NoiseState | None:
     chex.assert_shape(state.kappa, (trained.seeds,))
     chex.assert_rank(state.sigma, 2)
     return state
+
+
+def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
+                   noise_state: noise.NoiseState | None = None,
+                   segments: tuple[str, ...] | None = None) -> np.ndarray:
+    """Success [S, episodes] of every seed's deterministic policy, seeds vmapped as in training; with
+    `noise_state` (κ [S], σ [S, F]) each seed sees its observation noise as training's evaluation does,
+    on the run's noise segments or on `segments` (F features in their order)."""
+    if segments is None:
+        segments = noise.parse_segments(trained.config.train.noise_segments)
+    indices = noise.feature_indices(env.observation_spec.proprio_segments, segments)
+
+    def one(params, key, seed_noise):
+        policy = make_policy(trained.networks, trained.config, params)
+        observe = None if seed_noise is None else functools.partial(noise.observe, seed_noise, indices)
+        return evaluate(env, policy, key, episodes, observe=observe)
+
+    return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys, noise_state))

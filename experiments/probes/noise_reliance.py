@@ -32,9 +32,9 @@ import numpy as np
 import envs_mjx
 from bidal_jax import acting, noise
 from bidal_jax.run.checkpoint import CheckpointError
-from bidal_jax.run.policy import TrainedPolicy, load_noise, load_policy
+from bidal_jax.run.policy import TrainedPolicy, evaluate_seeds, load_noise, load_policy
 from experiments import cli
-from experiments.evaluate import evaluate_seeds, mean_interval
+from experiments.stats import mean_interval
 
 PAPER_GROUP = "ee_pos,ee_rot,obj_pos"
 DEFAULT_GROUPS = f"{PAPER_GROUP};obj_rel_pos,q;{PAPER_GROUP},obj_rel_pos,q"

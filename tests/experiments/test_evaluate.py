@@ -7,7 +7,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax import acting
-from bidal_jax.run.policy import load_policy
+from bidal_jax.run.policy import evaluate_seeds, load_policy
 from experiments import evaluate
 from tests.helpers import FINISHED_EPOCHS as EPOCHS
 from tests.helpers import FINISHED_SEEDS as SEEDS
@@ -22,7 +22,7 @@ def test_evaluate_with_the_runs_key_reproduces_its_last_eval_success(finished, e
     run_dir, rows = finished
     trained = load_policy(run_dir)
     assert trained.step == EPOCHS and trained.seeds == SEEDS
-    success = evaluate.evaluate_seeds(env, trained, trained.eval_key, trained.config.train.eval_envs)
+    success = evaluate_seeds(env, trained, trained.eval_key, trained.config.train.eval_envs)
     logged = [float(rows[-1][f"eval_success_seed{i}"]) for i in range(SEEDS)]
     assert success.mean(axis=1).tolist() == logged
     # one seed on its own, through the public policy
