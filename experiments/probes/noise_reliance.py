@@ -128,11 +128,12 @@ def main(argv: list[str] | None = None) -> int:
         env = envs_mjx.make(trained.config.run.env, render=trained.config.agent.uses_image)
         segments = env.observation_spec.proprio_segments
         groups = parse_groups(args.groups, segments)
+        run_noise = load_noise(args.run_dir, trained)
     except (ValueError, CheckpointError) as err:
         return cli.exit_code(err)
     keys = trained.eval_key
     sigma = clean_sigma(env, trained, keys, args.episodes)
-    scale = sigma_ratio(sigma, segments, trained, load_noise(args.run_dir, trained))
+    scale = sigma_ratio(sigma, segments, trained, run_noise)
     clean = mean_interval(evaluate_seeds(env, trained, keys, args.episodes))
     rows = {}
     for group in groups:

@@ -124,7 +124,7 @@ def test_noise_reliance_noises_each_group_on_its_own_scale(noisy, tmp_path):
     assert noise_reliance.main(["--run-dir", run_dir, "--episodes", str(EVAL_ENVS), "--kappas", "0.5,4",
                                 "--groups", "q;qdot", "--out", path]) == 0
     text = open(path).read()
-    assert "| noised segments | κ 0.5 | κ 4 |" in text
+    assert "| noised segments | κ 0.5 | κ 4 |" in text and "σ here / the run's σ on q: mean " in text
     assert [line.split(" |")[0] for line in text.splitlines() if line.startswith("| q")] == ["| q", "| qdot"]
 
 
