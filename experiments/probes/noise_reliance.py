@@ -62,17 +62,19 @@ def parse_kappas(text: str) -> list[float]:
     return kappas
 
 
-def clean_sigma(env, trained: TrainedPolicy, keys: jax.Array, episodes: int) -> np.ndarray:
-    """σ [S, D]: per seed and proprio feature, the interquartile range over every step of `episodes`
-    clean episodes of that seed's deterministic policy from its key (Eq. 9's σ, on the policy's own states)."""
+def clean_episodes(env, trained: TrainedPolicy, keys: jax.Array, episodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """(σ [S, D], success [S, episodes]) of `episodes` clean episodes of each seed's deterministic policy from
+    its key: per proprio feature the interquartile range over every step (Eq. 9's σ, on the policy's own
+    states), and each episode's success, the episodes `evaluate_seeds` runs without noise."""
 
     def one(params, key):
         policy = acting.make_policy(trained.networks, trained.config, params)
-        _, proprio = acting.rollout(env, policy, key, episodes, record=lambda step: step.obs["proprio"])
+        final, proprio = acting.rollout(env, policy, key, episodes, record=lambda step: step.obs["proprio"])
         flat = proprio.reshape(-1, proprio.shape[-1])
-        return noise.interquartile_range(flat, np.ones(flat.shape[0], bool))
+        return noise.interquartile_range(flat, np.ones(flat.shape[0], bool)), final.metrics["success"]
 
-    return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys))
+    sigma, success = jax.jit(jax.vmap(one))(trained.params, keys)
+    return np.asarray(sigma), np.asarray(success)
 
 
 def noise_on(sigma: np.ndarray, proprio_segments: tuple[tuple[str, int], ...], group: tuple[str, ...],
@@ -96,12 +98,12 @@ def sigma_ratio(sigma: np.ndarray, proprio_segments: tuple[tuple[str, int], ...]
             f"(min {np.nanmin(ratio):.2f}, max {np.nanmax(ratio):.2f})\n")
 
 
-def table(rows: dict[str, dict[str, tuple[float, float, float]]], kappas: list[float]) -> str:
-    """Markdown: one row per group, one column per κ; cells "mean (low-high)"."""
+def table(rows: dict[str, list[tuple[float, float, float]]], kappas: list[float]) -> str:
+    """Markdown: one row per group, one column per κ (each row's cells in `kappas`' order): "mean (low-high)"."""
     lines = ["| noised segments | " + " | ".join(f"κ {k:g}" for k in kappas) + " |",
              "| --- |" + " --- |" * len(kappas)]
     for group, by_kappa in rows.items():
-        lines.append(f"| {group} | " + " | ".join(cell(*by_kappa[f'{k:g}']) for k in kappas) + " |")
+        lines.append(f"| {group} | " + " | ".join(cell(*interval) for interval in by_kappa) + " |")
     return "\n".join(lines)
 
 
@@ -132,15 +134,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, CheckpointError) as err:
         return cli.exit_code(err)
     keys = trained.eval_key
-    sigma = clean_sigma(env, trained, keys, args.episodes)
+    sigma, clean_success = clean_episodes(env, trained, keys, args.episodes)
     scale = sigma_ratio(sigma, segments, trained, run_noise)
-    clean = mean_interval(evaluate_seeds(env, trained, keys, args.episodes))
-    rows = {}
-    for group in groups:
-        rows[", ".join(group)] = {
-            f"{k:g}": mean_interval(evaluate_seeds(env, trained, keys, args.episodes,
-                                                   noise_on(sigma, segments, group, k), group))
-            for k in kappas}
+    clean = mean_interval(clean_success)
+    rows = {", ".join(group): [mean_interval(evaluate_seeds(env, trained, keys, args.episodes,
+                                                            noise_on(sigma, segments, group, k), group))
+                               for k in kappas]
+            for group in groups}
     run = trained.config.run
     text = (f"{run.env} / {run.agent}, checkpoint {trained.step} of {args.run_dir}, {args.episodes} episodes per "
             f"seed, {trained.seeds} seed(s); σ from the policy's clean episodes; mean success (95 % t-interval "

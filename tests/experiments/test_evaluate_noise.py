@@ -14,7 +14,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax import acting, noise
-from bidal_jax.run.policy import load_noise, load_policy
+from bidal_jax.run.policy import evaluate_seeds, load_noise, load_policy
 from experiments import evaluate, run
 from experiments.probes import noise_reliance
 from tests.helpers import restored_state
@@ -114,8 +114,9 @@ def test_noise_reliance_noises_each_group_on_its_own_scale(noisy, tmp_path):
     trained = load_policy(run_dir)
     env = envs_mjx.make("planar_reach", render=False)
     segments = env.observation_spec.proprio_segments
-    sigma = noise_reliance.clean_sigma(env, trained, trained.eval_key, EVAL_ENVS)
+    sigma, clean = noise_reliance.clean_episodes(env, trained, trained.eval_key, EVAL_ENVS)
     assert sigma.shape == (SEEDS, env.observation_spec.proprio_size) and (sigma > 0).all()
+    np.testing.assert_array_equal(clean, evaluate_seeds(env, trained, trained.eval_key, EVAL_ENVS))
     state = noise_reliance.noise_on(sigma, segments, ("qdot",), 2.0)
     qdot = noise.feature_indices(segments, ("qdot",))
     np.testing.assert_array_equal(np.asarray(state.sigma), sigma[:, qdot])
