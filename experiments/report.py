@@ -5,6 +5,8 @@
   against epochs, env steps and wall time), labelled and grouped into panels.
 - `final_per_seed`, `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
   (the paper's "success rate over the last N epochs", Table II).
+- `absent_epochs`, `epoch_spans`: the epochs a run reached that its metrics.csv has no row for (rows lost
+  outside the run), and how the tables name them.
 - `plot(curves, prefix)`: PREFIX.png (one panel per env or `panel_by` value, the seed mean
   with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
   seed) and PREFIX.csv (the plotted numbers).
@@ -167,6 +169,23 @@ def curves(
         Curve(p, n, r["dir"], r["epoch"], r["env_steps"], r["wall_time"], r["success"])
         for r, p, n in zip(runs, panels, names)
     ]
+
+
+def absent_epochs(epochs: Sequence[float]) -> list[int]:
+    """The epochs from 1 to the last of a run's `epochs` (its metrics.csv rows) that have no row: rows lost
+    outside the run (a file damaged or replaced while the run trained), not epochs it skipped."""
+    return sorted(set(range(1, int(epochs[-1]) + 1)) - {int(e) for e in epochs})
+
+
+def epoch_spans(epochs: Sequence[int]) -> str:
+    """Sorted epochs as spans: [1, 2, 3, 5] -> "1-3, 5"."""
+    spans: list[list[int]] = []
+    for e in epochs:
+        if spans and e == spans[-1][1] + 1:
+            spans[-1][1] = e
+        else:
+            spans.append([e, e])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in spans)
 
 
 def final_per_seed(curve: Curve, last_n: int) -> np.ndarray:

@@ -204,8 +204,8 @@ def noise_claims(noise_dir: str, stale: set[str]) -> list[Claim]:
     gaps = [f"{a} missing" for a in agents if a not in budgets]
     gaps += [f"{a} at κ {k:.0%} missing" for a in agents if a in budgets for k in NOISE_KAPPAS if (k, a) not in found]
     measured = {found[k, a].run_dir: found[k, a] for a in agents for k in NOISE_KAPPAS if (k, a) in found}
-    gaps += [f"{os.path.basename(run_dir)} short ({len(curve.epoch)} of {budgets[curve.label]} epochs)"
-             for run_dir, curve in measured.items() if len(curve.epoch) < budgets[curve.label]]
+    gaps += [f"{os.path.basename(run_dir)} short ({int(curve.epoch[-1])} of {budgets[curve.label]} epochs)"
+             for run_dir, curve in measured.items() if curve.epoch[-1] < budgets[curve.label]]
     tasks = {report.load_run(run_dir)["env"] for run_dir in measured}
     measures = (
         ("steadier", "each run's std of its success over the last N epochs", protocol.steadiness, False, 1),

@@ -227,11 +227,6 @@ def stale_note(stale: Collection[str], cells: int) -> list[str]:
     ]
 
 
-def absent_epochs(run: dict) -> list[int]:
-    """The epochs from 1 to the run's last that its metrics.csv has no row for (a file damaged outside the run)."""
-    return sorted(set(range(1, int(run["epoch"][-1]) + 1)) - {int(e) for e in run["epoch"]})
-
-
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
     """The line naming the runs without epochs, those short of their epochs, and those whose metrics.csv
     lacks rows (their final success averages their last rows, whatever epochs those are)."""
@@ -242,9 +237,9 @@ def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
         if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
     ]
     holes = [
-        f"{arm.name} ({', '.join(map(str, absent))})"
+        f"{arm.name} ({report.epoch_spans(absent)})"
         for arm in arms
-        if arm.name in runs and (absent := absent_epochs(runs[arm.name]))
+        if arm.name in runs and (absent := report.absent_epochs(runs[arm.name]["epoch"]))
     ]
     absent_line = (
         f" Epochs without a row in metrics.csv: {'; '.join(holes)}; the final success averages the last rows there are."

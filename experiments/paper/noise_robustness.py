@@ -98,11 +98,23 @@ def parse_kappas(text: str) -> tuple[float, ...]:
         raise ConfigError(f"--kappas {text}: must be a comma list of {', '.join(named)}") from None
 
 
-def window_note(epochs: int, budget: int, last_n: int) -> str:
-    """" (19 epochs)", " (last 19 of 19 epochs)" when the run has fewer than the window, and "; short run:
-    19 of 40 epochs" added when it has fewer than its budget (its config's epochs)."""
-    window = f"last {epochs} of {epochs} epochs" if epochs < last_n else f"{epochs} epochs"
-    return f" ({window}" + (f"; short run: {epochs} of {budget} epochs" if epochs < budget else "") + ")"
+def window_note(rows: int, reached: int, budget: int, last_n: int) -> str:
+    """" (19 epochs)" for a run whose metrics.csv has 19 rows; " (last 19 of 19 epochs)" when those are fewer
+    than the window; "; 5 epochs without a row" when it `reached` more epochs than it has rows (rows lost outside
+    the run: `report.absent_epochs`); "; short run: 19 of 100 epochs" when `reached` is below its `budget` (its
+    config's epochs)."""
+    window = f"last {rows} of {rows} epochs" if rows < last_n else f"{rows} epochs"
+    lost = f"; {reached - rows} epochs without a row" if rows < reached else ""
+    return f" ({window}{lost}" + (f"; short run: {reached} of {budget} epochs" if reached < budget else "") + ")"
+
+
+def holes_note(curves: Sequence[report.Curve]) -> str:
+    """The line naming the runs whose metrics.csv lacks rows of epochs they trained (empty when none does)."""
+    holes = {os.path.basename(c.run_dir): absent for c in curves if (absent := report.absent_epochs(c.epoch))}
+    if not holes:
+        return ""
+    return ("Epochs without a row in metrics.csv (rows lost outside the run; its window averages the rows there "
+            "are): " + "; ".join(f"{name} ({report.epoch_spans(a)})" for name, a in holes.items()) + ".\n")
 
 
 def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]) -> str:
@@ -121,7 +133,8 @@ def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]
                 steady.append("— ")
             else:
                 mean, std, _ = report.final_success(curve, LAST_N[k])
-                cells.append(f"{mean:.3f} ± {std:.4f}{window_note(len(curve.epoch), budgets[a], LAST_N[k])}")
+                note = window_note(len(curve.epoch), int(curve.epoch[-1]), budgets[a], LAST_N[k])
+                cells.append(f"{mean:.3f} ± {std:.4f}{note}")
                 steady.append(f"{steadiness(curve, LAST_N[k]).mean():.4f}")
             cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
             steady.append(f"{PAPER[k][a][1]:.4f}")
@@ -147,7 +160,8 @@ def write_report(out: str) -> str:
     run_dirs = dict.fromkeys(curve.run_dir for curve in found.values())  # the folders read, in the table's order
     configs = {os.path.basename(d): grid.loaded(d)["config"] for d in run_dirs}
     resumed = "\n".join(grid.fresh_buffer_note(configs))
-    text = f"{table(found, budgets)}\n{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
+    holes = holes_note(list(found.values()))
+    text = f"{table(found, budgets)}\n{holes}{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)
     return text

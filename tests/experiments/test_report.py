@@ -59,3 +59,10 @@ def test_final_success_and_summary_table(two_runs):
     table = report.summary_table(runs, 5, threshold=0.8).splitlines()
     assert table[2] == "| ur5_reach | multimodal_bidal | 2 | 3 | 0.567 ± 0.100 (last 3) | 0.567 | 3, 24,000, 30 s |"
     assert table[3] == "| ur5_reach | proprio_baseline | 3 | 2 | 0.700 ± 0.147 (last 2) | 0.700 | 2, 16,000, 9 s |"
+
+
+def test_absent_epochs_are_those_up_to_the_last_without_a_row_and_read_as_spans():
+    assert report.absent_epochs(np.array([3.0, 4.0, 6.0, 7.0])) == [1, 2, 5]
+    assert report.absent_epochs(np.arange(1.0, 5)) == []
+    assert report.epoch_spans([1, 2, 5, 7, 8, 9]) == "1-2, 5, 7-9"
+    assert report.epoch_spans([]) == ""

@@ -63,8 +63,11 @@ def test_steadiness_is_each_runs_std_over_the_window_and_short_runs_are_marked()
     curve = report.Curve("κ", "agent", "dir", np.arange(1.0, 4), np.arange(1.0, 4), np.arange(1.0, 4), success)
     np.testing.assert_allclose(protocol.steadiness(curve, 2), [0.1, 0.0])
     np.testing.assert_allclose(protocol.steadiness(curve, 30), [np.std([0.0, 0.2, 0.4]), 0.0])
-    assert noise.window_note(40, 40, 30) == " (40 epochs)"
-    assert noise.window_note(19, 100, 30) == " (last 19 of 19 epochs; short run: 19 of 100 epochs)"
+    assert noise.window_note(40, 40, 40, 30) == " (40 epochs)"
+    assert noise.window_note(19, 19, 100, 30) == " (last 19 of 19 epochs; short run: 19 of 100 epochs)"
+    # rows lost outside the run: short only by the epoch reached, and the lost rows counted
+    assert noise.window_note(42, 100, 100, 30) == " (42 epochs; 58 epochs without a row)"
+    assert noise.window_note(26, 84, 100, 30) == " (last 26 of 26 epochs; 58 epochs without a row; short run: 84 of 100 epochs)"
 
 
 def test_a_bad_checkpoint_cadence_is_refused_before_anything_trains(tmp_path, capsys):
@@ -113,3 +116,16 @@ def test_a_kappa_in_both_layouts_is_refused(tmp_path, capsys):
 def test_kappas_other_than_the_papers_are_refused(capsys):
     assert noise.main([*TINY, "--kappas", "0.10,0.2"]) == 2
     assert capsys.readouterr().err == "error: --kappas 0.10,0.2: must be a comma list of 0.05, 0.10, 0.15\n"
+
+
+def test_a_run_whose_metrics_lost_rows_is_short_by_the_epoch_it_reached_and_named(tmp_path):
+    out = str(tmp_path / "noise")
+    run_dir = os.path.join(out, "proprio_baseline-kappa10")
+    write_fake_run(run_dir, "planar_reach", [[0.5, 0.5]] * 4, None, agent="proprio_baseline")
+    path = os.path.join(run_dir, "metrics.csv")
+    lines = open(path).read().splitlines(keepends=True)
+    open(path, "w").writelines([lines[0], *lines[3:]])  # the rows of epochs 1 and 2 lost, 3 and 4 kept
+    text = noise.write_report(out)
+    assert "(last 2 of 2 epochs; 2 epochs without a row; short run: 4 of 40 epochs)" in text
+    assert "Epochs without a row in metrics.csv (rows lost outside the run; its window averages the rows there " \
+           "are): proprio_baseline-kappa10 (1-2).\n" in text
