@@ -67,7 +67,8 @@ def test_steadiness_is_each_runs_std_over_the_window_and_short_runs_are_marked()
     assert noise.window_note(19, 19, 100, 30) == " (last 19 of 19 epochs; short run: 19 of 100 epochs)"
     # rows lost outside the run: short only by the epoch reached, and the lost rows counted
     assert noise.window_note(42, 100, 100, 30) == " (42 epochs; 58 epochs without a row)"
-    assert noise.window_note(26, 84, 100, 30) == " (last 26 of 26 epochs; 58 epochs without a row; short run: 84 of 100 epochs)"
+    assert noise.window_note(26, 84, 100, 30) == (
+        " (last 26 of 26 epochs; 58 epochs without a row; short run: 84 of 100 epochs)")
 
 
 def test_a_bad_checkpoint_cadence_is_refused_before_anything_trains(tmp_path, capsys):
