@@ -35,7 +35,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -167,6 +167,16 @@ def write_report(out: str) -> str:
     return text
 
 
+def report_or_error(write: Callable[[], None]) -> int:
+    """Run `write` (the table from the run folders); a folder it cannot read (a κ in both layouts, a run folder
+    damaged outside its run) is one `error: ...` line and exit code 2, also after training (whose runs are kept)."""
+    try:
+        write()
+    except report.RunError as err:
+        return cli.exit_code(err)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", default=os.path.join("results", "noise"), help="results folder")
@@ -200,11 +210,7 @@ def main(argv: list[str] | None = None) -> int:
              **{k: getattr(args, k) for k in (*SIZE_OPTIONS, "checkpoint_every") if getattr(args, k) is not None}}
     given["epochs"] = args.epochs or resolve(given).run.epochs
     if args.report:
-        try:
-            print(write_report(args.out) or f"no noise runs in {args.out}: nothing written")
-        except report.RunError as err:  # e.g. a κ in both layouts
-            return cli.exit_code(err)
-        return 0
+        return report_or_error(lambda: print(write_report(args.out) or f"no noise runs in {args.out}: nothing written"))
     try:
         if args.runs < 1:
             raise ConfigError(f"--runs {args.runs}: must be a positive integer")
@@ -230,8 +236,8 @@ def main(argv: list[str] | None = None) -> int:
     code = grid.train_arms(arms, envs, args.quiet)
     if code:
         return code
-    if multihost.is_main():  # one process writes the results
-        print(write_report(args.out))
+    if multihost.is_main():  # one process writes the results, from every run folder in --out (other programs' too)
+        return report_or_error(lambda: print(write_report(args.out)))
     return 0
 
 

@@ -130,3 +130,13 @@ def test_a_run_whose_metrics_lost_rows_is_short_by_the_epoch_it_reached_and_name
     assert "(last 2 of 2 epochs; 2 epochs without a row; short run: 4 of 40 epochs)" in text
     assert "Epochs without a row in metrics.csv (rows lost outside the run; its window averages the rows there " \
            "are): proprio_baseline-kappa10 (1-2).\n" in text
+
+
+def test_a_run_folder_the_table_cannot_read_after_training_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    out = str(tmp_path / "noise")
+    broken = os.path.join(out, "proprio_baseline-kappa15")  # another program's folder, its config.json gone
+    write_fake_run(broken, "planar_reach", [[0.5] * 2], None, agent="proprio_baseline")
+    os.remove(os.path.join(broken, "config.json"))
+    monkeypatch.setattr(noise.grid, "train_arms", lambda arms, envs, quiet: 0)  # this program's training, done
+    assert noise.main([*TINY, "--kappas", "0.05", "--out", out]) == 2
+    assert capsys.readouterr().err == f"error: {broken}: not a run directory (no config.json)\n"
