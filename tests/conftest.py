@@ -15,7 +15,10 @@ from bidal_jax.run import loop, preflight
 from experiments import run
 from tests.helpers import FINISHED
 
-CACHE = os.path.join(os.path.dirname(os.path.dirname(__file__)), ".jax_cache")
+# per user, not per checkout, so that a fresh clone (CI's) finds what earlier runs on the machine compiled (about a
+# third of the suite's time); $BIDAL_JAX_TEST_CACHE chooses another folder
+CACHE = os.environ.get("BIDAL_JAX_TEST_CACHE") or os.path.join(
+    os.environ.get("XDG_CACHE_HOME") or os.path.expanduser(os.path.join("~", ".cache")), "bidal_jax", "tests")
 os.environ.setdefault("BIDAL_JAX_CACHE", CACHE)  # the runs' own cache (`loop.enable_compilation_cache`)
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
