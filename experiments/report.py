@@ -5,8 +5,8 @@
   against epochs, env steps and wall time), labelled and grouped into panels.
 - `final_per_seed`, `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
   (the paper's "success rate over the last N epochs", Table II).
-- `absent_epochs`, `epoch_spans`: the epochs a run reached that its metrics.csv has no row for (rows lost
-  outside the run), and how the tables name them.
+- `absent_epochs`, `absent_note`: the epochs a run reached that its metrics.csv has no row for (rows lost
+  outside the run), and the sentence the tables name them in.
 - `plot(curves, prefix)`: PREFIX.png (one panel per env or `panel_by` value, the seed mean
   with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
   seed) and PREFIX.csv (the plotted numbers).
@@ -186,6 +186,16 @@ def epoch_spans(epochs: Sequence[int]) -> str:
         else:
             spans.append([e, e])
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in spans)
+
+
+def absent_note(named: Mapping[str, Sequence[float]]) -> str:
+    """The sentence naming each run (name -> its metrics.csv epochs) that lacks rows, with the epochs as spans
+    ("1-58; 91"); empty when none does."""
+    holes = [f"{name} ({epoch_spans(absent)})" for name, epochs in named.items() if (absent := absent_epochs(epochs))]
+    if not holes:
+        return ""
+    return (f"Epochs without a row in metrics.csv: {'; '.join(holes)}; the final success averages the last rows "
+            "there are.")
 
 
 def final_per_seed(curve: Curve, last_n: int) -> np.ndarray:

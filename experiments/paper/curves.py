@@ -236,15 +236,8 @@ def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
         for arm in arms
         if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
     ]
-    holes = [
-        f"{arm.name} ({report.epoch_spans(absent)})"
-        for arm in arms
-        if arm.name in runs and (absent := report.absent_epochs(runs[arm.name]["epoch"]))
-    ]
-    absent_line = (
-        f" Epochs without a row in metrics.csv: {'; '.join(holes)}; the final success averages the last rows there are."
-        if holes else ""
-    )
+    absent = report.absent_note({arm.name: runs[arm.name]["epoch"] for arm in arms if arm.name in runs})
+    absent_line = f" {absent}" if absent else ""
     if not missing and not unfinished:
         return "No run is missing or unfinished." + absent_line
     return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}." + absent_line

@@ -108,15 +108,6 @@ def window_note(rows: int, reached: int, budget: int, last_n: int) -> str:
     return f" ({window}{lost}" + (f"; short run: {reached} of {budget} epochs" if reached < budget else "") + ")"
 
 
-def holes_note(curves: Sequence[report.Curve]) -> str:
-    """The line naming the runs whose metrics.csv lacks rows of epochs they trained (empty when none does)."""
-    holes = {os.path.basename(c.run_dir): absent for c in curves if (absent := report.absent_epochs(c.epoch))}
-    if not holes:
-        return ""
-    return ("Epochs without a row in metrics.csv (rows lost outside the run; its window averages the rows there "
-            "are): " + "; ".join(f"{name} ({report.epoch_spans(a)})" for name, a in holes.items()) + ".\n")
-
-
 def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]) -> str:
     """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper; then the
     steadiness (`steadiness`, mean over runs) beside the paper's ±. `budgets`: each agent's epochs."""
@@ -160,8 +151,9 @@ def write_report(out: str) -> str:
     run_dirs = dict.fromkeys(curve.run_dir for curve in found.values())  # the folders read, in the table's order
     configs = {os.path.basename(d): grid.loaded(d)["config"] for d in run_dirs}
     resumed = "\n".join(grid.fresh_buffer_note(configs))
-    holes = holes_note(list(found.values()))
-    text = f"{table(found, budgets)}\n{holes}{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
+    absent = report.absent_note({os.path.basename(curve.run_dir): curve.epoch for curve in found.values()})
+    lost = f"{absent}\n" if absent else ""
+    text = f"{table(found, budgets)}\n{lost}{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
     with open(os.path.join(out, "table.md"), "w") as f:
         f.write(text)
     return text

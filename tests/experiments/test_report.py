@@ -66,3 +66,6 @@ def test_absent_epochs_are_those_up_to_the_last_without_a_row_and_read_as_spans(
     assert report.absent_epochs(np.arange(1.0, 5)) == []
     assert report.epoch_spans([1, 2, 5, 7, 8, 9]) == "1-2, 5, 7-9"
     assert report.epoch_spans([]) == ""
+    assert report.absent_note({"a": [3.0, 4.0], "b": [1.0, 2.0], "c": [2.0, 4.0]}) == (
+        "Epochs without a row in metrics.csv: a (1-2); c (1, 3); the final success averages the last rows there are.")
+    assert report.absent_note({"b": [1.0, 2.0]}) == ""

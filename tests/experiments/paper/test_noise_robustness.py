@@ -128,8 +128,8 @@ def test_a_run_whose_metrics_lost_rows_is_short_by_the_epoch_it_reached_and_name
     open(path, "w").writelines([lines[0], *lines[3:]])  # the rows of epochs 1 and 2 lost, 3 and 4 kept
     text = noise.write_report(out)
     assert "(last 2 of 2 epochs; 2 epochs without a row; short run: 4 of 40 epochs)" in text
-    assert "Epochs without a row in metrics.csv (rows lost outside the run; its window averages the rows there " \
-           "are): proprio_baseline-kappa10 (1-2).\n" in text
+    assert "Epochs without a row in metrics.csv: proprio_baseline-kappa10 (1-2); the final success averages the " \
+           "last rows there are.\n" in text
 
 
 def test_a_run_folder_the_table_cannot_read_after_training_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
