@@ -38,7 +38,8 @@ again, and a stale one (made on other physics or with another config) is refused
 then train), in the order source, transfer, scratch, so that the transfer's checks run as early
 as they can. `--arms` trains
 only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
-scratch arm does not need the source), then `--arms transfer`; any of them writes the results
+scratch arm does not need the source), then `--arms transfer`, which refuses to start while its source is
+unfinished (`refuse_unfinished_source`); any of them writes the results
 of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
 whose checkpoints were deleted). `--dry-run` prints the plan, each run with its state (new, resume,
 done or stale; `grid.plan`), and trains and writes nothing.
@@ -117,6 +118,22 @@ def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list
         given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
         arms.append(Arm(name, {**given, "epochs": resolve(given).run.epochs}))
     return arms
+
+
+def refuse_unfinished_source(arms: Sequence[Arm], train_names: frozenset[str]) -> None:
+    """ConfigError, one line, when the transfer arm would start (it has no checkpoint yet) from this command's own
+    source run while that run is unfinished and not trained first by the same command (`--arms transfer` alone):
+    it would start from a half-trained representation. A source named by --source is the user's to vouch for."""
+    by_name = {arm.name: arm for arm in arms}
+    if "transfer" not in train_names or "source" in train_names or "source" not in by_name:
+        return
+    source, transfer = by_name["source"], by_name["transfer"]
+    reached = grid.latest(source) or 0
+    if grid.latest(transfer) is None and reached < source.epochs:
+        raise ConfigError(
+            f"--arms transfer: its source {source.run_dir} is at epoch {reached} of {source.epochs}, and the transfer "
+            "arm starts from its parameters. Nothing was trained: finish the source first (--arms source)"
+        )
 
 
 def _cell(hit: report.Reached | None) -> tuple[str, str]:
@@ -234,6 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     source = [arm for arm in arms if arm.name == "source" and "transfer" in train_names]
     try:
         grid.refuse_stale(source, envs)
+        refuse_unfinished_source(arms, train_names)
         code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
     except ConfigError as err:
         code = cli.exit_code(err)

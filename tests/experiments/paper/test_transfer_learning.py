@@ -132,6 +132,25 @@ def test_the_transfer_arm_refuses_a_stale_source(tmp_path, no_nicol, capsys):
     ]
 
 
+@pytest.mark.parametrize("source_rows", [0, 1])  # no source run; one interrupted at epoch 1 of 2
+def test_the_transfer_arm_refuses_to_start_from_an_unfinished_source(source_rows, tmp_path, no_nicol, fake_run,
+                                                                       capsys):
+    out = tmp_path / "out"
+    if source_rows:
+        fake_run(str(out / "source"), "nicol_slide", FAKE["source"][:source_rows], source_rows)
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "transfer"]) == 2
+    assert no_nicol == []
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: --arms transfer: its source {out / 'source'} is at epoch {source_rows} of 2, and the transfer arm "
+        "starts from its parameters. Nothing was trained: finish the source first (--arms source)"
+    ]
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "source,transfer"]) == 0  # source first
+    assert [call[:2] for call in no_nicol] == [
+        ("prepare", str(out / "source")), ("train", str(out / "source")),
+        ("prepare", str(out / "transfer")), ("train", str(out / "transfer")),
+    ]
+
+
 def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
     args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
     arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
