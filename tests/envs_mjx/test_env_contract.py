@@ -23,8 +23,8 @@ N_ENVS, N_STEPS = 10, 100  # 1,000 random steps, beyond the episode length too
 def compiled(name):
     """One env per name with its jitted, vmapped reset and a random rollout from given states.
 
-    The rollout depends on the env's step alone, so envs that share a step (nicol_slide and
-    nicol_lift) share its compiled program through the persistent compilation cache."""
+    Each env compiles its own rollout: even nicol_slide's and nicol_lift's, on one scene, lower to different
+    programs (compared: one function more in nicol_lift's), so neither finds the other's in the cache."""
     env = envs_mjx.make(name)
     resets = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), N_ENVS))
 
