@@ -3,8 +3,8 @@
 Restores only what acting needs (`bidal_jax.run.policy.load_policy`: parameters and
 normalisers; the replay buffer is never read), runs `--episodes` deterministic episodes
 per seed and prints each seed's success with a 95 % Wilson interval, and the mean over
-seeds with a 95 % Student-t interval over the seeds (over the episodes when there is one
-seed). By default the episodes are drawn from the checkpoint's own evaluation key, so with
+seeds with a 95 % Student-t interval over the seeds clipped to [0, 1] (Wilson's over the episodes when there
+is one seed). By default the episodes are drawn from the checkpoint's own evaluation key, so with
 `--episodes` equal to the run's `eval_envs` the printed success is the one the run logged
 for that epoch; `--seed S` draws other episodes.
 

@@ -47,12 +47,21 @@ def wilson_interval(successes: int, n: int) -> tuple[float, float]:
     return max(0.0, centre - half), min(1.0, centre + half)
 
 
+def rate_interval(rates: np.ndarray) -> tuple[float, float, float]:
+    """(mean, low, high): `student_interval` of success rates [S] clipped to [0, 1], the range of a rate (over a
+    few seeds near 0 or 1 the t interval would leave it, e.g. 0.8 over rates 1, 1, 1, 1, 0: 0.245-1.355)."""
+    mean, low, high = student_interval(rates)
+    low, high = np.clip([low, high], 0.0, 1.0)  # nan (one value) stays nan
+    return mean, float(low), float(high)
+
+
 def mean_interval(success: np.ndarray) -> tuple[float, float, float]:
-    """(mean, low, high) of the seeds' success rates [S, N]: Student-t over seeds, or Wilson for one seed."""
+    """(mean, low, high) of the seeds' success rates [S, N]: Student-t over seeds (`rate_interval`), or Wilson for
+    one seed."""
     rates = success.mean(axis=1)
     if len(rates) == 1:
         return (float(rates[0]), *wilson_interval(int(success.sum()), success.size))
-    return student_interval(rates)
+    return rate_interval(rates)
 
 
 def bootstrap_difference(a: Sequence[np.ndarray], b: Sequence[np.ndarray], resamples: int = RESAMPLES,

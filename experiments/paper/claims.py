@@ -107,8 +107,8 @@ def gap(name: str, run: dict | None, budget: int) -> str | None:
 
 
 def figure(values: np.ndarray) -> str:
-    """A mean over seeds with its 95 % Student-t interval."""
-    mean, low, high = stats.student_interval(values)
+    """A mean of success rates over seeds, its 95 % Student-t interval clipped to [0, 1] (`stats.rate_interval`)."""
+    mean, low, high = stats.rate_interval(values)
     return f"{mean:.3f} {stats.interval_text(low, high)}"
 
 
@@ -355,9 +355,10 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set
         "# The paper's three claims, measured",
         "",
         f"From the run folders {curves_dir}, {noise_dir} and {transfer_dir}. Intervals: 95 %, a Student-t "
-        "interval over seeds for a figure, a bootstrap over seeds (10,000 resamples, fixed seed) for a "
-        "difference. Verdict rule (experiments/paper/claims.py): every check favours the claim: reproduced; none "
-        "favours and one is against: reversed; otherwise not reproduced; a run missing or short: not measured.",
+        "interval over seeds for a figure (clipped to [0, 1], the range of a success rate), a bootstrap over seeds "
+        "(10,000 resamples, fixed seed) for a difference. Verdict rule (experiments/paper/claims.py): every check "
+        "favours the claim: reproduced; none favours and one is against: reversed; otherwise not reproduced; a run "
+        "missing or short: not measured.",
         "",
         claims_table(rows),
         "",

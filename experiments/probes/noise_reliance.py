@@ -15,8 +15,8 @@ the clean copies.
         --kappas 0.15,1 --groups "ee_pos,ee_rot,obj_pos;obj_rel_pos,q;ee_pos,ee_rot,obj_pos,obj_rel_pos,q"
 
 Prints the clean success and a markdown table (one row per group, one column per κ): the mean success
-over seeds with its 95 % Student-t interval over seeds; `--out` also writes it to a file. Exit codes: 0 done;
-2 bad input (one `error: ...` line).
+over seeds with its 95 % Student-t interval over seeds (clipped to [0, 1]); `--out` also writes it to a
+file. Exit codes: 0 done; 2 bad input (one `error: ...` line).
 """
 
 from __future__ import annotations

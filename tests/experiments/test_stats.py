@@ -17,6 +17,16 @@ def test_student_interval_of_three_values():
     assert math.isnan(stats.student_interval(np.array([0.5]))[1])
 
 
+def test_rate_interval_is_the_student_interval_clipped_to_the_range_of_a_rate():
+    mean, low, high = stats.rate_interval(np.array([1.0, 1.0, 1.0, 1.0, 0.0]))
+    _, t_low, t_high = stats.student_interval(np.array([1.0, 1.0, 1.0, 1.0, 0.0]))
+    assert (mean, low, high) == pytest.approx((0.8, t_low, 1.0)) and t_high > 1.3  # 0.245-1.355 unclipped
+    assert stats.rate_interval(np.array([0.0, 0.0, 0.1]))[1] == 0.0
+    assert math.isnan(stats.rate_interval(np.array([0.5]))[1])
+    np.testing.assert_allclose(stats.rate_interval(np.array([0.4, 0.5, 0.6])), stats.student_interval(
+        np.array([0.4, 0.5, 0.6])))  # inside [0, 1]: unchanged
+
+
 def test_welch_interval_of_a_known_difference():
     # equal variances 1 and n = 3: se = √(2/3), Welch's df = 4, t(0.975, 4) = 2.7764451
     diff, low, high = stats.welch_interval(np.array([1.0, 2.0, 3.0]), np.array([0.0, 1.0, 2.0]))
