@@ -1,7 +1,8 @@
 #!/bin/bash
 # unpack.sh DIR: put the runs that finish.sh carried back (DIR/*.tgz, each holding e.g. noise/RUN/) into results/,
-# replacing those folders; a finished run (metrics.csv at its config's epochs) keeps no checkpoint there, an
-# unfinished one keeps its carried checkpoint (docs/usage.md); the compilation cache goes to .xla/
+# replacing those folders; each keeps its carried checkpoint only where experiments.carry.keeps_checkpoint says
+# (an unfinished run, a finished transfer source whose transfer arm has not started; docs/usage.md); the
+# compilation cache goes to .xla/
 set -eu
 cd "$(dirname "$0")/.."
 for t in "$1"/*.tgz; do
@@ -10,15 +11,14 @@ for t in "$1"/*.tgz; do
   [[ "$run" == ?*/?* ]] || { echo "skip $t: no RUN/config.json inside"; continue; }
   rm -rf "results/$run"; mkdir -p "results/$(dirname "$run")"
   tar xzf "$t" -C results "$run"
-  if python3 - "results/$run" <<'PY'
-import csv, json, sys
-run = sys.argv[1]
-epochs = json.load(open(f"{run}/config.json"))["run"]["epochs"]
-rows = list(csv.DictReader(open(f"{run}/metrics.csv")))
-sys.exit(0 if rows and float(rows[-1]["epoch"]) >= epochs else 1)
-PY
-  then rm -rf "results/$run/checkpoints"; echo "results/$run: finished (its checkpoints not kept)"
-  else echo "results/$run: unfinished, keeps $(ls "results/$run/checkpoints" 2>/dev/null | tr '\n' ' ')"; fi
+  # exit 0: keep, 3: drop; anything else (an import error) stops here with the checkpoint untouched
+  rc=0; python3 -c 'import sys; from experiments.carry import keeps_checkpoint as k; sys.exit(0 if k(sys.argv[1]) else 3)' \
+    "results/$run" || rc=$?
+  case $rc in
+    0) echo "results/$run: keeps checkpoint $(ls "results/$run/checkpoints" 2>/dev/null | tr '\n' ' ')";;
+    3) rm -rf "results/$run/checkpoints"; echo "results/$run: finished, its checkpoints not kept";;
+    *) echo "error: results/$run: keeps_checkpoint failed (exit $rc); nothing dropped, results/ not staged"; exit 1;;
+  esac
 done
 git add -A results
 git status --short results | grep -v '/checkpoints/' || true

@@ -20,6 +20,8 @@ first), a RUN without a finished checkpoint, a DEST that exists. The copy is mad
 from __future__ import annotations
 
 import argparse
+import csv
+import json
 import os
 import shutil
 import sys
@@ -44,6 +46,37 @@ def build_parser() -> argparse.ArgumentParser:
 def folder_bytes(path: str) -> int:
     """Bytes of the files under `path`."""
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
+
+
+def last_epoch(run_dir: str) -> int:
+    """The last epoch of the run's metrics.csv (0 without a row or without the file)."""
+    path = os.path.join(run_dir, "metrics.csv")
+    if not os.path.exists(path):
+        return 0
+    with open(path, newline="") as f:
+        return max((int(float(row["epoch"])) for row in csv.DictReader(f)), default=0)
+
+
+def finished(run_dir: str) -> bool:
+    """Whether the run's metrics.csv reaches the epochs of its config.json (False without a config.json)."""
+    path = os.path.join(run_dir, "config.json")
+    if not os.path.exists(path):
+        return False
+    with open(path) as f:
+        return last_epoch(run_dir) >= json.load(f)["run"]["epochs"]
+
+
+def keeps_checkpoint(run_dir: str) -> bool:
+    """Whether a results folder keeps the run's latest checkpoint, carried without its buffer: while the run is
+    unfinished, so that a later sitting continues it; and when it is a transfer experiment's finished source
+    (`experiments.paper.transfer_learning`: OUT/source) whose transfer arm (OUT/transfer) has not started, since
+    that arm starts from the source's parameters (a started arm resumes from its own checkpoint)."""
+    if not finished(run_dir):
+        return True
+    run_dir = os.path.normpath(run_dir)
+    arm = os.path.join(os.path.dirname(run_dir), "transfer")
+    return os.path.basename(run_dir) == "source" and not os.path.isdir(os.path.join(arm, "checkpoints")) \
+        and not finished(arm)
 
 
 def carry(run_dir: str, dest: str) -> int:

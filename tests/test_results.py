@@ -1,23 +1,18 @@
 """What results/ may hold (.gitignore): run folders (config.json, metrics.csv), plots and tables; of an unfinished
 run also its latest checkpoint without the replay buffer (`python -m experiments.carry`), from which a later
-sitting on any machine continues it; never a finished run's checkpoints, a second checkpoint or a buffer."""
+sitting on any machine continues it, and so of a finished transfer source until its transfer arm has started
+(`experiments.carry.keeps_checkpoint`); never another finished run's checkpoints, a second checkpoint or a buffer."""
 
 import csv
 import json
 import os
 
-from experiments.carry import folder_bytes
+from experiments.carry import folder_bytes, keeps_checkpoint, last_epoch
 from tests.conftest import write_fake_run
 from tests.helpers import REPO
 
 # a carried checkpoint of a 5-seed NICOL image run is 7-9 MB; the working tree a GPU lease receives is 64 MiB
 MAX_CHECKPOINT_BYTES = 16 * 2**20
-
-
-def last_epoch(run_dir: str) -> int:
-    """The last epoch of the run's metrics.csv (0 without a row)."""
-    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
-        return max((int(float(row["epoch"])) for row in csv.DictReader(f)), default=0)
 
 
 def misplaced_checkpoints(root: str) -> list[str]:
@@ -30,7 +25,7 @@ def misplaced_checkpoints(root: str) -> list[str]:
         with open(os.path.join(run_dir, "config.json")) as f:
             epochs = json.load(f)["run"]["epochs"]
         reached = last_epoch(run_dir)
-        if reached >= epochs:
+        if not keeps_checkpoint(run_dir):
             problems.append(f"{run_dir}: finished ({reached} of {epochs} epochs) but keeps checkpoints")
         if steps != [str(reached)]:
             problems.append(f"{run_dir}: checkpoints {steps}; keep the latest alone, that of epoch {reached}")
@@ -65,3 +60,15 @@ def test_misplaced_checkpoints_are_found(tmp_path):
         f"{finished}: finished (3 of 3 epochs) but keeps checkpoints",
         f"{older}: checkpoints ['1']; keep the latest alone, that of epoch 2",
     ]
+
+
+def test_a_finished_transfer_source_keeps_its_checkpoint_until_the_transfer_arm_starts(tmp_path):
+    out = tmp_path / "transfer"
+    source = str(out / "source")
+    write_fake_run(source, "nicol_slide", [(0.5,)] * 3, 3, given={"epochs": 3}, buffer=False)
+    assert misplaced_checkpoints(str(tmp_path)) == []  # no transfer arm yet: the source's parameters are needed
+    write_fake_run(str(out / "transfer"), "nicol_lift_reduced", [(0.1,)], 1, given={"epochs": 3}, buffer=False)
+    assert misplaced_checkpoints(str(tmp_path)) == [f"{source}: finished (3 of 3 epochs) but keeps checkpoints"]
+    scratch = str(out / "scratch")  # any other finished run keeps none, whatever its neighbours
+    write_fake_run(scratch, "nicol_lift_reduced", [(0.1,)] * 3, 3, given={"epochs": 3}, buffer=False)
+    assert f"{scratch}: finished (3 of 3 epochs) but keeps checkpoints" in misplaced_checkpoints(str(tmp_path))
