@@ -3,7 +3,6 @@ run also its latest checkpoint without the replay buffer (`python -m experiments
 sitting on any machine continues it, and so of a finished transfer source until its transfer arm has started
 (`experiments.carry.keeps_checkpoint`); never another finished run's checkpoints, a second checkpoint or a buffer."""
 
-import csv
 import json
 import os
 
