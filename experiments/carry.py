@@ -20,8 +20,6 @@ first), a RUN without a finished checkpoint, a DEST that exists. The copy is mad
 from __future__ import annotations
 
 import argparse
-import csv
-import json
 import os
 import shutil
 import sys
@@ -29,7 +27,7 @@ import sys
 from bidal_jax.config import ConfigError
 from bidal_jax.run import checkpoint, rundir
 from bidal_jax.run.checkpoint import CheckpointError
-from experiments import cli
+from experiments import cli, report
 
 TMP_SUFFIX = ".carry-tmp"
 
@@ -48,22 +46,14 @@ def folder_bytes(path: str) -> int:
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
 
 
-def last_epoch(run_dir: str) -> int:
-    """The last epoch of the run's metrics.csv (0 without a row or without the file)."""
-    path = os.path.join(run_dir, "metrics.csv")
-    if not os.path.exists(path):
-        return 0
-    with open(path, newline="") as f:
-        return max((int(float(row["epoch"])) for row in csv.DictReader(f)), default=0)
-
-
 def finished(run_dir: str) -> bool:
-    """Whether the run's metrics.csv reaches the epochs of its config.json (False without a config.json)."""
-    path = os.path.join(run_dir, "config.json")
-    if not os.path.exists(path):
+    """Whether the run's metrics.csv reaches the epochs of its config.json (`report.load_run`; False for a folder it
+    cannot read as a run, e.g. one without epochs yet)."""
+    try:
+        run = report.load_run(run_dir)
+    except report.RunError:
         return False
-    with open(path) as f:
-        return last_epoch(run_dir) >= json.load(f)["run"]["epochs"]
+    return run["epoch"][-1] >= run["config"]["run"]["epochs"]
 
 
 def keeps_checkpoint(run_dir: str) -> bool:
