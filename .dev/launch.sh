@@ -8,7 +8,8 @@ mkdir -p /tmp/xla /tmp/lanes /tmp/wd /root/res
 # train OUTSIDE the copied tree: every later call copies the tree again, restoring tracked files and deleting
 # untracked ones there (session 24 lost 46 epochs so); queue lines write into /root/res/...
 [ -d /root/res/noise ] || cp -r results/. /root/res/
-if [ -f .xla/xla.tgz ]; then tar xzf .xla/xla.tgz -C /tmp/xla; fi
+for t in .xla/xla*.tgz; do [ -f "$t" ] && tar xzf "$t" -C /tmp/xla; done
+touch /tmp/lanes/start  # finish.sh carries back the cache entries newer than this
 echo $(( $(date +%s) + $1 )) > /tmp/lanes/deadline
 nvidia-smi --query-gpu=index,name,memory.used --format=csv
 for q in .dev/queue[0-9].txt; do

@@ -2,11 +2,14 @@
 # unpack.sh DIR: put the runs that finish.sh carried back (DIR/*.tgz, each holding e.g. noise/RUN/) into results/,
 # replacing those folders; each keeps its carried checkpoint only where experiments.carry.keeps_checkpoint says
 # (an unfinished run, a finished transfer source whose transfer arm has not started; docs/usage.md); the
-# compilation cache goes to .xla/
+# compilation cache parts (xla*.tgz) replace those in .xla/, the lanes' logs go to /tmp/lanes-back
 set -eu
 cd "$(dirname "$0")/.."
+mkdir -p .xla
+if ls "$1"/xla*.tgz >/dev/null 2>&1; then rm -f .xla/xla*.tgz; cp "$1"/xla*.tgz .xla/; fi
+[ -f "$1/lanes.tgz" ] && { mkdir -p /tmp/lanes-back; tar xzf "$1/lanes.tgz" -C /tmp/lanes-back; echo "lane logs in /tmp/lanes-back"; }
 for t in "$1"/*.tgz; do
-  [ "$(basename "$t")" = xla.tgz ] && { rm -f .xla/xla.tgz; mkdir -p .xla; cp "$t" .xla/xla.tgz; continue; }
+  case "$(basename "$t")" in xla*.tgz|lanes.tgz) continue;; esac
   run=$(tar tzf "$t" | grep -m1 '/config.json$'); run=${run%/config.json}
   [[ "$run" == ?*/?* ]] || { echo "skip $t: no RUN/config.json inside"; continue; }
   rm -rf "results/$run"; mkdir -p "results/$(dirname "$run")"
