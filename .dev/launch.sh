@@ -8,7 +8,7 @@ mkdir -p /tmp/xla /tmp/lanes /tmp/wd /root/res
 # train OUTSIDE the copied tree: every later call copies the tree again, restoring tracked files and deleting
 # untracked ones there (session 24 lost 46 epochs so); queue lines write into /root/res/...
 [ -d /root/res/noise ] || cp -r results/. /root/res/
-for t in .xla/xla*.tgz; do [ -f "$t" ] && tar xzf "$t" -C /tmp/xla; done
+for set in $(ls .xla/*.tgz.part* 2>/dev/null | sed 's/\.part[0-9]*$//' | sort -u); do cat "$set".part* | tar xzf - -C /tmp/xla; done
 touch /tmp/lanes/start  # finish.sh carries back the cache entries newer than this
 echo $(( $(date +%s) + $1 )) > /tmp/lanes/deadline
 nvidia-smi --query-gpu=index,name,memory.used --format=csv

@@ -9,7 +9,7 @@ while [ $(date +%s) -lt $end ]; do
 done
 for f in /tmp/lanes/lane*.log; do
   echo "== $f"
-  tr '\r' '\n' < $f | grep -v "epoch/s" | grep -iE "start|exit|skip|SIGTERM|LANE|error|compiled|Traceback|final" | tail -8
-  tr '\r' '\n' < $f | grep "epoch/s" | tail -1
+  tr '\r' '\n' < $f | grep -vE "epoch/s|s/epoch" | grep -iE "start|exit|skip|SIGTERM|LANE|error|compiled|Traceback|final" | tail -8
+  tr '\r' '\n' < $f | grep -E "epoch/s|s/epoch" | tail -1
 done
 nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader

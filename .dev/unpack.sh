@@ -2,14 +2,16 @@
 # unpack.sh DIR: put the runs that finish.sh carried back (DIR/*.tgz, each holding e.g. noise/RUN/) into results/,
 # replacing those folders; each keeps its carried checkpoint only where experiments.carry.keeps_checkpoint says
 # (an unfinished run, a finished transfer source whose transfer arm has not started; docs/usage.md); the
-# compilation cache parts (xla*.tgz) replace those in .xla/, the lanes' logs go to /tmp/lanes-back
-set -eu
+# compilation cache's parts (xla.tgz.partNN) join .xla/ as a set of their own, the lanes' logs go to /tmp/lanes-back
+set -eu; shopt -s nullglob
 cd "$(dirname "$0")/.."
 mkdir -p .xla
-if ls "$1"/xla*.tgz >/dev/null 2>&1; then rm -f .xla/xla*.tgz; cp "$1"/xla*.tgz .xla/; fi
+# a lease's cache entries join those of earlier leases as one more set, .xla/xla-STAMP.tgz.partNN
+stamp=$(date +%Y%m%d-%H%M%S)
+for f in "$1"/xla.tgz.part*; do [ -f "$f" ] && cp "$f" ".xla/xla-$stamp.tgz.${f##*.tgz.}"; done
 [ -f "$1/lanes.tgz" ] && { mkdir -p /tmp/lanes-back; tar xzf "$1/lanes.tgz" -C /tmp/lanes-back; echo "lane logs in /tmp/lanes-back"; }
 for t in "$1"/*.tgz; do
-  case "$(basename "$t")" in xla*.tgz|lanes.tgz) continue;; esac
+  [ "$(basename "$t")" = lanes.tgz ] && continue
   run=$(tar tzf "$t" | grep -m1 '/config.json$'); run=${run%/config.json}
   [[ "$run" == ?*/?* ]] || { echo "skip $t: no RUN/config.json inside"; continue; }
   rm -rf "results/$run"; mkdir -p "results/$(dirname "$run")"
