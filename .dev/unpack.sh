@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 mkdir -p .xla
 # a lease's cache entries join those of earlier leases as one more set, .xla/xla-STAMP.tgz.partNN
 stamp=$(date +%Y%m%d-%H%M%S)
-for f in "$1"/xla.tgz.part*; do [ -f "$f" ] && cp "$f" ".xla/xla-$stamp.tgz.${f##*.tgz.}"; done
+for f in "$1"/xla.tgz.part*; do cp "$f" ".xla/xla-$stamp.tgz.${f##*.tgz.}"; done
 [ -f "$1/lanes.tgz" ] && { mkdir -p /tmp/lanes-back; tar xzf "$1/lanes.tgz" -C /tmp/lanes-back; echo "lane logs in /tmp/lanes-back"; }
 for t in "$1"/*.tgz; do
   [ "$(basename "$t")" = lanes.tgz ] && continue
@@ -17,8 +17,7 @@ for t in "$1"/*.tgz; do
   rm -rf "results/$run"; mkdir -p "results/$(dirname "$run")"
   tar xzf "$t" -C results "$run"
   # exit 0: keep, 3: drop; anything else (an import error) stops here with the checkpoint untouched
-  rc=0; python3 -c 'import sys; from experiments.carry import keeps_checkpoint as k; sys.exit(0 if k(sys.argv[1]) else 3)' \
-    "results/$run" || rc=$?
+  rc=0; bash .dev/keeps.sh "results/$run" || rc=$?
   case $rc in
     0) echo "results/$run: keeps checkpoint $(ls "results/$run/checkpoints" 2>/dev/null | tr '\n' ' ')";;
     3) rm -rf "results/$run/checkpoints"; echo "results/$run: finished, its checkpoints not kept";;
