@@ -1,7 +1,7 @@
 #!/bin/bash
 # regen.sh: after unpack.sh, regenerate the paper experiments' tables, figures and the README's claims table from
 # the run folders under results/ (each command is the one printed under its table), then stage them
-set -eu
+set -euo pipefail  # a failing report stops here, not hidden by its tail
 cd "$(dirname "$0")/.."
 python -m experiments.paper.curves --report --out results/curves | tail -6
 python -m experiments.paper.noise_robustness --report --out results/noise | tail -3
