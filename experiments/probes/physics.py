@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import Callable, NamedTuple
 
 import chex
 import jax
@@ -149,18 +150,37 @@ def _mjx_rollouts(env: NicolEnv):
     return env._physics_check_rollouts
 
 
+class NativeHelpers(NamedTuple):
+    """The compiled pieces of `native_rollout`, shared by every scenario and batch (the scenario is an argument)."""
+
+    starts: Callable    # (scenario, episodes [N], keys [N, 2]) -> the start States
+    actions: Callable   # (scenario, hand [N, 3], cube [N, 3], keys [N, 2]) -> actions
+    commands: Callable  # env.commands over N envs
+    path: Callable      # env.target_path over N envs and the substeps
+    depths: Callable    # (geom [M, C, 2], dist [M, C]) -> [M, pairs]: `contact_depths` of M substeps
+
+
+def _native_helpers(env: NicolEnv) -> NativeHelpers:
+    if not hasattr(env, "_physics_check_native"):
+        pairs = pair_geoms(env.mj_model)
+        env._physics_check_native = NativeHelpers(
+            starts=jax.jit(jax.vmap(lambda s, e, k: start_state(env, s, e, k), (None, 0, 0))),
+            actions=jax.jit(jax.vmap(scenario_action, (None, 0, 0, 0))),
+            commands=jax.jit(jax.vmap(env.commands)),
+            path=jax.jit(jax.vmap(jax.vmap(env.target_path, (0, 0, 0, 0, None)), (None, None, None, None, 0), 1)),
+            depths=jax.jit(jax.vmap(lambda g, d: contact_depths(g, d, pairs))),
+        )
+    return env._physics_check_native
+
+
 def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) -> dict[str, np.ndarray]:
     """`mjx_rollout` stepped by plain MuJoCo (float64, `mujoco.mj_step`): the same starts, scenario
     actions, hand commands and target path; `proprio` is left out (its code is MJX's), and
     `solver_iterations` (envs, steps, substeps) is added (the Newton solver's `data.solver_niter`)."""
     index = jnp.int32(SCENARIOS.index(scenario))
     key_start, key_steps = jax.random.split(key)
-    starts = jax.jit(jax.vmap(lambda e, k: start_state(env, index, e, k)))(
-        jnp.arange(n_envs), jax.random.split(key_start, n_envs)
-    )
-    actions = jax.jit(jax.vmap(lambda h, c, k: scenario_action(index, h, c, k)))
-    commands = jax.jit(jax.vmap(env.commands))
-    path = jax.jit(jax.vmap(jax.vmap(env.target_path, (0, 0, 0, 0, None)), (None, None, None, None, 0), 1))
+    helpers = _native_helpers(env)
+    starts = helpers.starts(index, jnp.arange(n_envs), jax.random.split(key_start, n_envs))
     model, t = env.mj_model, env._target_mocap
     datas = [mujoco.MjData(model) for _ in range(n_envs)]
     for i, data in enumerate(datas):
@@ -174,10 +194,10 @@ def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) ->
     for step, key_step in enumerate(jax.random.split(key_steps, STEPS)):
         hand = np.stack([d.xpos[env._hand] for d in datas])
         cube = np.stack([d.xpos[env._cube] for d in datas])
-        action = actions(hand, cube, jax.random.split(key_step, n_envs))
+        action = helpers.actions(index, hand, cube, jax.random.split(key_step, n_envs))
         pos, quat = np.stack([d.mocap_pos[t] for d in datas]), np.stack([d.mocap_quat[t] for d in datas])
-        new_pos, new_quat, ctrl = commands(hand, quat, action)
-        path_pos, path_quat = map(np.asarray, path(pos, quat, new_pos, new_quat, jnp.arange(env.n_substeps)))
+        new_pos, new_quat, ctrl = helpers.commands(hand, quat, action)
+        path_pos, path_quat = map(np.asarray, helpers.path(pos, quat, new_pos, new_quat, jnp.arange(env.n_substeps)))
         for i, data in enumerate(datas):
             data.ctrl[:] = np.asarray(ctrl[i])
             for sub in range(env.n_substeps):
@@ -188,9 +208,7 @@ def native_rollout(env: NicolEnv, scenario: str, key: jax.Array, n_envs: int) ->
                 iterations[i, step, sub] = data.solver_niter[0]
                 geom[i, step, sub, :n] = data.contact.geom[:n]
                 dist[i, step, sub, :n] = data.contact.dist[:n]
-    pairs = pair_geoms(model)
-    depths = jax.jit(jax.vmap(lambda g, d: contact_depths(g, d, pairs)))
-    depth = depths(geom.reshape(-1, MAX_CONTACTS, 2), dist.reshape(-1, MAX_CONTACTS))
+    depth = helpers.depths(geom.reshape(-1, MAX_CONTACTS, 2), dist.reshape(-1, MAX_CONTACTS))
     depth = np.asarray(depth).reshape(*motion.shape[:3], -1)
     return {"motion": motion, "depth": depth, "solver_iterations": iterations}
 
