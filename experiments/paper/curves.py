@@ -227,22 +227,6 @@ def stale_note(stale: Collection[str], cells: int) -> list[str]:
     ]
 
 
-def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
-    """The line naming the runs without epochs, those short of their epochs, and those whose metrics.csv
-    lacks rows (their final success averages their last rows, whatever epochs those are)."""
-    missing = [arm.name for arm in arms if arm.name not in runs]
-    unfinished = [
-        f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
-        for arm in arms
-        if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
-    ]
-    absent = report.absent_note({arm.name: runs[arm.name]["epoch"] for arm in arms if arm.name in runs})
-    absent_line = f" {absent}" if absent else ""
-    if not missing and not unfinished:
-        return "No run is missing or unfinished." + absent_line
-    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}." + absent_line
-
-
 def regenerate_command(args: argparse.Namespace, rest: Sequence[str], out: str) -> str:
     """The command that rewrites curves.png/.csv and table.md from the run folders alone: `--report` with the
     options that choose the runs, their budget and the window of the final success, and the learner and network
@@ -280,7 +264,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
         f"Total wall time of the runs: {duration(total)}.",
         "",
-        gaps(arms, runs),
+        grid.gaps(arms, runs),
         "",
         f"Regenerate from the run folders: `{command}`",
         "",

@@ -290,6 +290,22 @@ def fresh_buffer_note(configs: dict[str, dict]) -> list[str]:
     ]
 
 
+def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
+    """The line naming the runs without epochs, those short of their epochs, and those whose metrics.csv
+    lacks rows (their final success averages their last rows, whatever epochs those are)."""
+    missing = [arm.name for arm in arms if arm.name not in runs]
+    unfinished = [
+        f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
+        for arm in arms
+        if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
+    ]
+    absent = report.absent_note({arm.name: runs[arm.name]["epoch"] for arm in arms if arm.name in runs})
+    absent_line = f" {absent}" if absent else ""
+    if not missing and not unfinished:
+        return "No run is missing or unfinished." + absent_line
+    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}." + absent_line
+
+
 def write_table(out: str, text: str | None) -> None:
     """Write `text` to OUT/table.md and print it; None: no run has epochs yet."""
     if text is None:

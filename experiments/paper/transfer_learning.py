@@ -177,11 +177,25 @@ def difference_table(transfer: report.Curve, scratch: report.Curve) -> str:
     return report.markdown_table(head, rows)
 
 
-def difference_notes(transfer: report.Curve, scratch: report.Curve) -> list[str]:
-    """The section of table.md on the difference between the arms."""
+def short_note(transfer: report.Curve, scratch: report.Curve, epochs: int) -> list[str]:
+    """The warning above the intervals while an arm has run fewer than the experiment's `epochs`."""
+    ran = {c.label: int(c.epoch[-1]) for c in (transfer, scratch)}
+    if min(ran.values()) >= epochs:
+        return []
+    return [
+        f"**Not the experiment yet**: the arms have run {ran['transfer']} and {ran['scratch']} of their {epochs} "
+        "epochs (transfer, scratch), so the intervals below compare the epochs each has run, not the experiment's "
+        "budget; they stand once both arms have finished.",
+        "",
+    ]
+
+
+def difference_notes(transfer: report.Curve, scratch: report.Curve, epochs: int) -> list[str]:
+    """The section of table.md on the difference between the arms (each planned for `epochs`)."""
     return [
         "## Transfer − scratch, 95 % intervals over seeds",
         "",
+        *short_note(transfer, scratch, epochs),
         "Per seed: AUC is its mean success over the epochs run; env steps to a threshold are those of the first "
         "epoch whose success (that seed's) is at least it. *A seed that never reaches a threshold is censored at "
         "its run's total env steps, which understates its time. Bootstrap: "
@@ -203,7 +217,8 @@ def regenerate_command(args: argparse.Namespace, out: str) -> str:
 
 def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
     """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
-    runs = {arm.name: r for arm in arms if arm.name != "source" and (r := grid.loaded(arm.run_dir))}
+    targets = [arm for arm in arms if arm.name != "source"]
+    runs = {arm.name: r for arm in targets if (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
     curves = report.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
@@ -218,11 +233,13 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
         "",
         results_table(curves, last_n),
         "",
+        grid.gaps(targets, runs),
+        "",
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
     ]
     by_label = {c.label: c for c in curves}
     if {"transfer", "scratch"} <= set(by_label):
-        notes += difference_notes(by_label["transfer"], by_label["scratch"])
+        notes += difference_notes(by_label["transfer"], by_label["scratch"], targets[0].epochs)
     source = grid.loaded(source_dir)
     if source is not None:
         notes.append(

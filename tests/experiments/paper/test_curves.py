@@ -253,13 +253,13 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
 def test_a_finished_grid_says_so():
     arms = _arms(["--epochs", "2"])[:1]
     runs = {arms[0].name: {"epoch": [1.0, 2.0]}}
-    assert curves.gaps(arms, runs) == "No run is missing or unfinished."
+    assert grid.gaps(arms, runs) == "No run is missing or unfinished."
 
 
 def test_a_run_whose_metrics_lack_an_epoch_is_named():
     arms = _arms(["--epochs", "4"])[:1]
     runs = {arms[0].name: {"epoch": [1.0, 2.0, 4.0]}}
-    assert curves.gaps(arms, runs) == (
+    assert grid.gaps(arms, runs) == (
         f"No run is missing or unfinished. Epochs without a row in metrics.csv: {arms[0].name} (3); "
         "the final success averages the last rows there are."
     )

@@ -85,6 +85,22 @@ def test_interrupted_runs_resume_and_runs_without_a_checkpoint_start_again(tmp_p
     assert "| transfer | 2 | 1 | 100 |" in (out / "table.md").read_text()  # from whatever is there
 
 
+def test_a_short_arm_is_named_and_the_intervals_are_marked_as_not_the_experiment(tmp_path, no_nicol, fake_run):
+    out = tmp_path / "out"
+    fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], 3)
+    fake_run(str(out / "scratch"), "nicol_lift_reduced", FAKE["scratch"][:2], 2)  # 2 of its 3 epochs
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
+    table = (out / "table.md").read_text()
+    assert "Missing: none. Unfinished: scratch (epoch 2 of 3)." in table
+    assert "**Not the experiment yet**: the arms have run 3 and 2 of their 3 epochs (transfer, scratch)" in table
+    shutil.rmtree(out / "scratch")
+    fake_run(str(out / "scratch"), "nicol_lift_reduced", FAKE["scratch"], 3)
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
+    table = (out / "table.md").read_text()
+    assert "No run is missing or unfinished." in table and "Not the experiment yet" not in table
+
+
 def test_dry_run_prints_each_runs_state_and_trains_and_writes_nothing(tmp_path, no_nicol, fake_run, capsys):
     out = tmp_path / "out"
     fake_run(str(out / "source"), "nicol_slide", FAKE["source"], 2)  # done
