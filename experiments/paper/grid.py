@@ -290,20 +290,23 @@ def fresh_buffer_note(configs: dict[str, dict]) -> list[str]:
     ]
 
 
+def unfinished(arms: Sequence[Arm], runs: dict[str, dict]) -> list[Arm]:
+    """The arms whose runs (`runs`: name -> `loaded` run) have epochs, but fewer than the arm's."""
+    return [arm for arm in arms if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs]
+
+
 def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
     """The line naming the runs without epochs, those short of their epochs, and those whose metrics.csv
     lacks rows (their final success averages their last rows, whatever epochs those are)."""
     missing = [arm.name for arm in arms if arm.name not in runs]
-    unfinished = [
-        f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
-        for arm in arms
-        if arm.name in runs and runs[arm.name]["epoch"][-1] < arm.epochs
-    ]
+    unfinished_runs = [f"{arm.name} (epoch {int(runs[arm.name]['epoch'][-1])} of {arm.epochs})"
+                       for arm in unfinished(arms, runs)]
     absent = report.absent_note({arm.name: runs[arm.name]["epoch"] for arm in arms if arm.name in runs})
     absent_line = f" {absent}" if absent else ""
-    if not missing and not unfinished:
+    if not missing and not unfinished_runs:
         return "No run is missing or unfinished." + absent_line
-    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished) or 'none'}." + absent_line
+    return f"Missing: {', '.join(missing) or 'none'}. Unfinished: {', '.join(unfinished_runs) or 'none'}." \
+        + absent_line
 
 
 def write_table(out: str, text: str | None) -> None:

@@ -177,25 +177,26 @@ def difference_table(transfer: report.Curve, scratch: report.Curve) -> str:
     return report.markdown_table(head, rows)
 
 
-def short_note(transfer: report.Curve, scratch: report.Curve, epochs: int) -> list[str]:
-    """The warning above the intervals while an arm has run fewer than the experiment's `epochs`."""
-    ran = {c.label: int(c.epoch[-1]) for c in (transfer, scratch)}
-    if min(ran.values()) >= epochs:
+def short_note(arms: Sequence[Arm], runs: dict[str, dict]) -> list[str]:
+    """The warning above the intervals while an arm of `arms` (transfer and scratch, of one budget) has run fewer
+    than its epochs (`grid.unfinished`); `runs`: name -> run."""
+    if not grid.unfinished(arms, runs):
         return []
+    ran = " and ".join(str(int(runs[arm.name]["epoch"][-1])) for arm in arms)
     return [
-        f"**Not the experiment yet**: the arms have run {ran['transfer']} and {ran['scratch']} of their {epochs} "
-        "epochs (transfer, scratch), so the intervals below compare the epochs each has run, not the experiment's "
-        "budget; they stand once both arms have finished.",
+        f"**Not the experiment yet**: the arms have run {ran} of their {arms[0].epochs} epochs "
+        f"({', '.join(arm.name for arm in arms)}), so the intervals below compare the epochs each has run, not the "
+        "experiment's budget; they stand once both arms have finished.",
         "",
     ]
 
 
-def difference_notes(transfer: report.Curve, scratch: report.Curve, epochs: int) -> list[str]:
-    """The section of table.md on the difference between the arms (each planned for `epochs`)."""
+def difference_notes(transfer: report.Curve, scratch: report.Curve, warning: Sequence[str]) -> list[str]:
+    """The section of table.md on the difference between the arms, `warning` (`short_note`) above the intervals."""
     return [
         "## Transfer − scratch, 95 % intervals over seeds",
         "",
-        *short_note(transfer, scratch, epochs),
+        *warning,
         "Per seed: AUC is its mean success over the epochs run; env steps to a threshold are those of the first "
         "epoch whose success (that seed's) is at least it. *A seed that never reaches a threshold is censored at "
         "its run's total env steps, which understates its time. Bootstrap: "
@@ -239,7 +240,7 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
     ]
     by_label = {c.label: c for c in curves}
     if {"transfer", "scratch"} <= set(by_label):
-        notes += difference_notes(by_label["transfer"], by_label["scratch"], targets[0].epochs)
+        notes += difference_notes(by_label["transfer"], by_label["scratch"], short_note(targets, runs))
     source = grid.loaded(source_dir)
     if source is not None:
         notes.append(
