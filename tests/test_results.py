@@ -3,22 +3,15 @@ run also its latest checkpoint without the replay buffer (`python -m experiments
 sitting on any machine continues it, and so of a finished transfer source until its transfer arm has started
 (`experiments.carry.keeps_checkpoint`); never another finished run's checkpoints, a second checkpoint or a buffer."""
 
-import csv
-import json
 import os
 
+from experiments import report
 from experiments.carry import folder_bytes, keeps_checkpoint
 from tests.conftest import write_fake_run
 from tests.helpers import REPO
 
 # a carried checkpoint of a 5-seed NICOL image run is 7-9 MB; the working tree a GPU lease receives is 64 MiB
 MAX_CHECKPOINT_BYTES = 16 * 2**20
-
-
-def last_epoch(run_dir: str) -> int:
-    """The last epoch of the run's metrics.csv (0 without a row)."""
-    with open(os.path.join(run_dir, "metrics.csv"), newline="") as f:
-        return max((int(float(row["epoch"])) for row in csv.DictReader(f)), default=0)
 
 
 def misplaced_checkpoints(root: str) -> list[str]:
@@ -28,9 +21,8 @@ def misplaced_checkpoints(root: str) -> list[str]:
         if "checkpoints" not in folders:
             continue
         steps = sorted(os.listdir(os.path.join(run_dir, "checkpoints")))
-        with open(os.path.join(run_dir, "config.json")) as f:
-            epochs = json.load(f)["run"]["epochs"]
-        reached = last_epoch(run_dir)
+        run = report.load_run(run_dir)  # RunError (a failure naming the folder) where it is not a run with epochs
+        epochs, reached = run["config"]["run"]["epochs"], int(run["epoch"][-1])
         if not keeps_checkpoint(run_dir):
             problems.append(f"{run_dir}: finished ({reached} of {epochs} epochs) but keeps checkpoints")
         if steps != [str(reached)]:
