@@ -26,7 +26,8 @@ for d in "$@"; do
   fi
   tar czf $OUT/$n.tgz --exclude=tb -C /tmp/carry $d
 done
-# the cache: the entries this lease wrote (newer than launch.sh's start), in parts of 15 MiB (xla.tgz.partNN)
-cd /tmp/xla && find . -type f -newer /tmp/lanes/start > /tmp/new.lst && tar czf /tmp/xla-new.tgz -T /tmp/new.lst \
-  && split -b 15M -d /tmp/xla-new.tgz $OUT/xla.tgz.part
+# the cache: the entries this lease wrote (newer than launch.sh's start), in parts of 15 MiB (xla.tgz.partNN);
+# none where every program hit the carried cache
+cd /tmp/xla && find . -type f -newer /tmp/lanes/start > /tmp/new.lst && [ -s /tmp/new.lst ] \
+  && tar czf /tmp/xla-new.tgz -T /tmp/new.lst && split -b 15M -d /tmp/xla-new.tgz $OUT/xla.tgz.part
 ls -la $OUT

@@ -7,9 +7,13 @@
 set -eu; shopt -s nullglob
 cd "$(dirname "$0")/.."
 mkdir -p .xla
-# a lease's cache entries join those of earlier leases as one more set, .xla/xla-STAMP.tgz.partNN
-stamp=$(date +%Y%m%d-%H%M%S)
-for f in "$1"/xla.tgz.part*; do cp "$f" ".xla/xla-$stamp.tgz.${f##*.tgz.}"; done
+# a lease's cache entries join those of earlier leases as one more set, .xla/xla-HASH.tgz.partNN, named by the
+# parts' content so that unpacking the same files again (after a failure below) overwrites the set, not adds one
+parts=("$1"/xla.tgz.part*)
+if [ ${#parts[@]} -gt 0 ]; then
+  hash=$(cat "${parts[@]}" | sha256sum | cut -c1-12)
+  for f in "${parts[@]}"; do cp "$f" ".xla/xla-$hash.tgz.${f##*.tgz.}"; done
+fi
 [ -f "$1/lanes.tgz" ] && { mkdir -p /tmp/lanes-back; tar xzf "$1/lanes.tgz" -C /tmp/lanes-back; echo "lane logs in /tmp/lanes-back"; }
 for t in "$1"/*.tgz; do
   [ "$(basename "$t")" = lanes.tgz ] && continue
