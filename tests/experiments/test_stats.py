@@ -2,6 +2,7 @@
 measures and difference rows (experiments/paper/transfer_learning.py) on hand-written curves."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -33,6 +34,18 @@ def test_welch_interval_of_a_known_difference():
     half = 2.7764451051977987 * math.sqrt(2 / 3)
     assert (diff, low, high) == pytest.approx((1.0, 1.0 - half, 1.0 + half))
     assert math.isnan(stats.welch_interval(np.full(3, 0.5), np.full(3, 0.2))[1])  # no spread: undefined
+
+
+def test_welch_interval_with_one_arm_without_spread_is_the_other_arms_interval_without_a_warning():
+    # every transfer seed censored at 20,480,000 env steps: scipy warns of precision loss, which is not one
+    censored = np.full(5, 20_480_000.0)
+    other = np.array([20_480_000.0, 19_000_000.0, 20_480_000.0, 18_500_000.0, 20_480_000.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        diff, low, high = stats.welch_interval(censored, other)
+    expected = 20_480_000.0 - other.mean()
+    half = 2.7764451051977987 * other.std(ddof=1) / math.sqrt(5)  # t(0.975, 4): Welch's df is the other arm's n − 1
+    assert (diff, low, high) == pytest.approx((expected, expected - half, expected + half))
 
 
 def test_bootstrap_of_constant_arms_is_the_difference_itself():
