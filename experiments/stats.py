@@ -91,12 +91,14 @@ def welch_interval(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
 
     a, b = _sample(a, "a"), _sample(b, "b")
     point = float(a.mean() - b.mean())
-    if min(a.size, b.size) < 2 or (np.ptp(a) == 0 and np.ptp(b) == 0):
+    flat_a, flat_b = np.ptp(a) == 0, np.ptp(b) == 0
+    if min(a.size, b.size) < 2 or (flat_a and flat_b):
         return point, math.nan, math.nan
     with warnings.catch_warnings():
-        # an arm without spread (e.g. every seed censored at its run's env steps) has variance exactly 0;
-        # scipy calls that a loss of precision, but the interval is then the other arm's, and exact
-        warnings.filterwarnings("ignore", "Precision loss occurred", RuntimeWarning)
+        if flat_a or flat_b:
+            # an arm without spread (e.g. every seed censored at its run's env steps) has variance exactly 0;
+            # scipy calls that a loss of precision, but the interval is then the other arm's, and exact
+            warnings.filterwarnings("ignore", "Precision loss occurred", RuntimeWarning)
         low, high = stats.ttest_ind(a, b, equal_var=False).confidence_interval(LEVEL)
     return point, float(low), float(high)
 
