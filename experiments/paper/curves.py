@@ -23,9 +23,9 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 (with `--tasks nicol_lift` only that task trains).
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
-run dir, new/resume/done/stale) and its estimated time on one H100 running the runs one after another
-(`SECONDS`, measured figures), and writes nothing. Otherwise the runs train one after another
-(`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
+run dir, new/resume/done/stale) and its estimated time on one GPU running the runs one after another
+(`SECONDS`, measured from the grid's run folders in results/curves), and writes nothing. Otherwise the runs
+train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
 whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's checkpoints), is at its epochs
 is skipped, an interrupted one resumes from its latest checkpoint (with an empty replay buffer where the
 checkpoint was carried without it, `experiments.carry`), one without a checkpoint starts again. A stale run
@@ -71,22 +71,17 @@ from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per t
 PROG = "python -m experiments.paper.curves"
 STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
-# estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on
-# one H100, per task and agent kind (image: any agent that sees images; proprio: proprio_baseline), from
-# docs/results.md (sessions 11-14; compile = the process's time to the end of its first epoch, less one epoch):
-# - nicol_slide (2,560 envs × 1 cycle, 1,600 updates per cycle), the grid's own cells (session 14, a checkpoint
-#   every 5 epochs included): multimodal_bidal 16.8 s/epoch, first epoch at 195 s (a sweep, which saves no
-#   checkpoints: 14.3 s/epoch); proprio_baseline 6.9 s/epoch alone, first epoch at 144 s;
-# - nicol_lift (2,048 envs × 2 cycles, 3,200 updates per cycle): multimodal_bidal 41.5 s/epoch, first epoch at
-#   261 s; proprio_baseline 11.2 s/epoch, first epoch at 158 s (100 epochs: 1,382 s);
-# - planar_reach and ur5_reach: 1 seed on an H100, 4-6 s/epoch, compile ~40 s (129 s for 20 epochs
-#   with compilation); 6 s/epoch and 60 s compile assumed for 5 seeds, either kind.
-_REACH = {"image": (6.0, 60.0), "proprio": (6.0, 60.0)}
+# estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on one GPU, per
+# task and agent kind (image: any agent that sees images, timed by its slowest on an H100, multimodal_bidal;
+# proprio: proprio_baseline), measured from the grid's own run folders, results/curves/<task>/<agent>/metrics.csv
+# (seconds per epoch: `wall_time`'s mean step per epoch; compile: the first epoch's `wall_time_with_compile` less its
+# `wall_time`). NICOL: one H100. Reaching: their config.json names no machine and their metrics.csv has no
+# compile column; their slowest agent of each kind, with 60 s of compiling assumed.
 SECONDS = {
-    "planar_reach": _REACH,
-    "ur5_reach": _REACH,
-    "nicol_slide": {"image": (16.8, 178.0), "proprio": (6.9, 137.0)},
-    "nicol_lift": {"image": (41.5, 220.0), "proprio": (11.2, 148.0)},
+    "planar_reach": {"image": (10.2, 60.0), "proprio": (0.9, 60.0)},
+    "ur5_reach": {"image": (6.7, 60.0), "proprio": (0.6, 60.0)},
+    "nicol_slide": {"image": (17.0, 182.0), "proprio": (10.7, 128.0)},
+    "nicol_lift": {"image": (42.2, 173.0), "proprio": (12.4, 148.0)},
 }
 
 
@@ -172,7 +167,7 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     lines = [f"plan: {len(arms)} runs"]
     lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
     lines.append(
-        f"estimated time: {duration(sum(seconds))} on one H100 running the runs one after another "
+        f"estimated time: {duration(sum(seconds))} on one GPU running the runs one after another "
         "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
     )
     stale = sum(status.state == "stale" for status in statuses)

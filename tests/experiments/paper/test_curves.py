@@ -14,6 +14,7 @@ from bidal_jax import config as config_lib
 from bidal_jax.run import loop
 from experiments.paper import curves, grid
 from tests.conftest import TODAY, write_fake_run
+from tests.helpers import REPO
 
 TASKS = ("planar_reach", "ur5_reach", "nicol_slide", "nicol_lift")
 SMALL = ["--tasks", "planar_reach", "--agents", "proprio_baseline,visual_baseline,multimodal_baseline",
@@ -73,15 +74,28 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
             )
     assert (
         f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
-        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 4,370 s"
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 4,393 s"
     ) in lines
     assert (
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
-        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 240 s"
+        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 78 s"
     ) in lines
-    # 5 × 300 + 5 × 240 + (4 × 1,858 + 827) + (4 × 4,370 + 1,268)
-    assert "estimated time: 29,707 s (8.3 h) on one H100 running the runs one after another" in printed
+    # (96 + 4 × 468) + (78 + 4 × 261) + (1,198 + 4 × 1,882) + (1,388 + 4 × 4,393)
+    assert "estimated time: 30,776 s (8.5 h) on one GPU running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
+
+
+@pytest.mark.parametrize("task", ["nicol_slide", "nicol_lift"])
+def test_the_nicol_estimates_are_the_grids_measured_times(task):
+    """`SECONDS` of the NICOL tasks are those the grid's own H100 runs in results/curves recorded (image: the
+    multimodal_bidal run), so the estimate follows the run folders, not a copied figure."""
+    for kind, agent in (("image", "multimodal_bidal"), ("proprio", "proprio_baseline")):
+        with open(os.path.join(REPO, "results", "curves", task, agent, "metrics.csv")) as f:
+            rows = list(csv.DictReader(f))
+        wall, epoch = ([float(row[key]) for row in rows] for key in ("wall_time", "epoch"))
+        per_epoch = (wall[-1] - wall[0]) / (epoch[-1] - epoch[0])
+        compile_s = float(rows[0]["wall_time_with_compile"]) - wall[0]
+        assert curves.SECONDS[task][kind] == pytest.approx((per_epoch, compile_s), abs=0.5), (kind, agent)
 
 
 def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(tmp_path, no_nicol, fake_run, capsys):
@@ -99,8 +113,8 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     printed = capsys.readouterr().out
     assert no_nicol == []
     assert "[done]; estimated 0 s" in printed
-    assert "[resume, checkpoint at epoch 1]; estimated 72 s" in printed  # 60 s compile + 2 epochs × 6 s
-    assert "[new]; estimated 78 s" in printed
+    assert "[resume, checkpoint at epoch 1]; estimated 80 s" in printed  # 60 s compile + 2 epochs × 10.2 s
+    assert "[new]; estimated 91 s" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 0
     assert no_nicol == [
         ("prepare", interrupted, True, False),
@@ -302,8 +316,8 @@ def test_training_refuses_stale_runs_before_any_trains(tmp_path, no_nicol, fake_
     before = {d: sorted(os.walk(d)) for d in (old, other)}
     assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert f"{old} [stale: trained on other physics]; estimated 78 s" in printed  # counted from the start
-    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 78 s" in printed
+    assert f"{old} [stale: trained on other physics]; estimated 91 s" in printed  # counted from the start
+    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 91 s" in printed
     assert "stale: 2 of 3 runs; training refuses them" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 2
     assert no_nicol == []  # the first run, new, was not trained either
