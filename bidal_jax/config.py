@@ -237,17 +237,16 @@ def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> 
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 40}},
     "ur5_reach": {"run": {"epochs": 15}},
-    # the NICOL tasks are sized for one GPU (docs/results.md): many parallel envs, big batches and many
-    # gradient updates, which cost little beside the physics there; the same for every agent of a task (equal
-    # budgets). nicol_slide: one cycle of 2,560 envs and 1,600 updates an epoch (128,000 env steps, one update per
-    # 80): multimodal_bidal (5 seeds, one H100 alone) reached 0.9 at 338 s from a cold start, 14.3 s an epoch, where
-    # 512 envs × 5 cycles (the same env steps and updates) took 323 s at 17.8 s an epoch; 80 updates per cycle left
-    # it at 0.62 after 100 epochs (sessions 9, 10, 13)
+    # the NICOL tasks are sized for one GPU: many parallel envs, big batches and many gradient updates, which cost
+    # little beside the physics there; the same for every agent of a task (equal budgets). nicol_slide: one cycle
+    # of 2,560 envs and 1,600 updates an epoch (128,000 env steps, one update per 80), since one wide cycle costs
+    # fewer sequential physics steps: multimodal_bidal (5 seeds, one H100) reaches 0.9 at 338 s from a cold start,
+    # 14.3 s an epoch, where 512 envs × 5 cycles (the same env steps and updates) take 17.8 s an epoch
+    # (docs/results.md, "Learning speed on nicol_slide: the preset")
     "nicol_slide": gpu_preset(2560, 1, 1600),
-    # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps):
-    # proprio_baseline (5 seeds) reached what sliding alone can score (0.125) by epoch 21 instead of 53, and one
-    # seed of five went past it (0.625 at epoch 54), where 1,600 updates an epoch stayed at 0.11-0.13 for 84 epochs
-    # (docs/results.md, session 11)
+    # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps), since
+    # with 1,600 proprio_baseline (5 seeds) reached what sliding alone can score (0.125) only by epoch 53 instead of
+    # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting: what was tried")
     **{name: gpu_preset(2048, 2, 3200) for name in ("nicol_lift", "nicol_lift_reduced")},
 }
 # Per-agent overrides of the env presets, for agents that learn from images.

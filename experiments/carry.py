@@ -1,6 +1,6 @@
-"""Carry a stopped run to another machine or a later sitting: `python -m experiments.carry --run-dir RUN --out DEST`.
+"""Carry a stopped run to another machine or a later process: `python -m experiments.carry --run-dir RUN --out DEST`.
 
-A run that outlasts the machine it trains on (a lease, a cluster job's time limit) stops with SIGTERM (its epoch
+A run that outlasts the machine it trains on (a machine's or a cluster job's time limit) stops with SIGTERM (its epoch
 in flight finishes and a checkpoint is saved) and continues elsewhere. Its replay buffer is most of a checkpoint
 (841 MB of a 5-seed nicol_slide image run's, against 7-9 MB for all the rest), too much to move or commit, so
 this copies what the run needs without it into DEST:
@@ -58,7 +58,7 @@ def finished(run_dir: str) -> bool:
 
 def keeps_checkpoint(run_dir: str) -> bool:
     """Whether a results folder keeps the run's latest checkpoint, carried without its buffer: while the run is
-    unfinished, so that a later sitting continues it; and when it is a transfer experiment's finished source
+    unfinished, so that a later process continues it; and when it is a transfer experiment's finished source
     (`experiments.paper.transfer_learning`: OUT/source) whose transfer arm (OUT/transfer) has not started, since
     that arm starts from the source's parameters (a started arm resumes from its own checkpoint)."""
     if not finished(run_dir):

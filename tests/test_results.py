@@ -1,6 +1,6 @@
 """What results/ may hold (.gitignore): run folders (config.json, metrics.csv), plots and tables; of an unfinished
 run also its latest checkpoint without the replay buffer (`python -m experiments.carry`), from which a later
-sitting on any machine continues it, and so of a finished transfer source until its transfer arm has started
+process on any machine continues it, and so of a finished transfer source until its transfer arm has started
 (`experiments.carry.keeps_checkpoint`); never another finished run's checkpoints, a second checkpoint or a buffer."""
 
 import os
@@ -10,7 +10,7 @@ from experiments.carry import folder_bytes, keeps_checkpoint
 from tests.conftest import write_fake_run
 from tests.helpers import REPO
 
-# a carried checkpoint of a 5-seed NICOL image run is 7-9 MB; the working tree a GPU lease receives is 64 MiB
+# a carried checkpoint of a 5-seed NICOL image run is 7-9 MB; a checkpoint must stay small enough to commit
 MAX_CHECKPOINT_BYTES = 16 * 2**20
 
 

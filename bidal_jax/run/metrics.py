@@ -83,7 +83,7 @@ def epoch_row(epoch: int, metrics: dict, epoch_seconds: float, steps_before: flo
               wall_with_compile: float) -> dict[str, float]:
     """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times: `wall_time`
     (`wall`: seconds of training, from when the programs were built) and `wall_time_with_compile` (seconds
-    from when `train` began, building and compiling the programs included), both summed over resumed sessions."""
+    from when `train` began, building and compiling the programs included), both summed over the run's processes."""
     row = {"epoch": epoch}
     for key, value in sorted(metrics.items()):
         row[key] = float(np.mean(value))

@@ -9,7 +9,7 @@ JSON copy, stays in `--out` for TensorBoard or ui.perfetto.dev) and prints, per 
 host thread, the seconds its events add up to, how many there are, and its largest operations.
 On a GPU the event count of the compute stream is the number of kernels an epoch launches: when
 it, rather than the work per kernel, sets the epoch's time, more seeds per device cost little and
-more devices gain little (docs/results.md, "Session 8").
+more devices gain little (docs/results.md, "Where the time goes").
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The paper's three claims, measured on our run folders, each with a verdict by a stated rule:
 
     python -m experiments.paper.claims --curves results/curves --noise results/noise --transfer results/transfer
-        --out results/claims.md [--readme README.md] [--stale TASK[,TASK]] [--last-n 10]
+        --out results/claims.md [--readme docs/reproduction.md] [--stale TASK[,TASK]] [--last-n 10]
 
 (a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline
     none; multimodal BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
@@ -375,8 +375,8 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set
 
 
 def readme_block(rows: Sequence[Claim], times: str, command: str) -> str:
-    """The README's copy of the claims: the table without its rules, the time line and the command, between
-    `README_START` and `README_END`."""
+    """The claims block of a document (docs/reproduction.md): the table without its rules, the time line and
+    the command, between `README_START` and `README_END`."""
     table = report.markdown_table(["claim", "ours (95 % interval)", "paper", "verdict"],
                                   [[r.claim, r.ours, r.paper, r.verdict] for r in rows])
     return "\n".join([README_START, table, "", times, "", f"Regenerate: `{command}` (the rules of the verdicts "
@@ -408,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "physics than today's besides those whose config.json says so (their verdicts say so)")
     parser.add_argument("--last-n", type=int, default=10, help="epochs of the curves' final success")
     parser.add_argument("--readme", default=None, help="also write the claims (without their rules) into this "
-                        "file, between its lines README_START and README_END (e.g. README.md)")
+                        "file, between its lines README_START and README_END (e.g. docs/reproduction.md)")
     return parser
 
 

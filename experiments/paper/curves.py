@@ -25,10 +25,11 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
 run dir, new/resume/done/stale) and its estimated time on one GPU running the runs one after another
 (`SECONDS`, measured from the grid's run folders in results/curves), and writes nothing. Otherwise the runs
-train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run the same command again; a run
-whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's checkpoints), is at its epochs
-is skipped, an interrupted one resumes from its latest checkpoint (with an empty replay buffer where the
-checkpoint was carried without it, `experiments.carry`), one without a checkpoint starts again. A stale run
+train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run
+the same command again; a run whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's
+checkpoints), is at its epochs is skipped, an interrupted one resumes from its latest checkpoint (with an empty
+replay buffer where the checkpoint was carried without it, `experiments.carry`), one without a checkpoint
+starts again. A stale run
 (`grid.stale`: its config.json records other physics than its task's today, or none, or a config that differs
 from its arm's today in a field that changes results, e.g. num_envs)
 is neither skipped nor resumed: while any run is stale, training refuses to start (exit 2, one

@@ -232,7 +232,7 @@ def plan(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
 
 
 def carried_without_buffer(arm: Arm) -> bool:
-    """Whether the run's latest checkpoint lacks its replay buffer (a run carried from another machine or sitting,
+    """Whether the run's latest checkpoint lacks its replay buffer (a run carried from another machine or process,
     `experiments.carry`): training resumes it with an empty buffer, as `--resume --fresh-buffer` does."""
     directory = os.path.join(arm.run_dir, "checkpoints")
     return checkpoint.latest_step(directory) is not None and not checkpoint.has_buffer(directory)

@@ -6,7 +6,7 @@ interquartile range over the clean history; `bidal_jax/noise.py`) at κ = 5, 10 
 5 runs each. Per agent, the 3 κ × 5 runs are ONE compiled program: 15 vmapped runs whose κ
 is data in the training state (run i has κ_{i // 5} and its own seed key). `--kappas 0.10,0.15`
 instead trains each named κ as its own program of 5 runs into `<agent>-kappa10/` ... (about a
-third of the time each, so that one fits a machine lent for half an hour); the table reads both
+third of the time each, so that one fits a half-hour job); the table reads both
 layouts, and the same κ in both is refused.
 
 Writes into `--out` (default results/noise): one run directory per agent (`<agent>/`,

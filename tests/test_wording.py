@@ -1,0 +1,65 @@
+"""The repository speaks of the product (docs/design.md, convention 9): no tracked text file names how the work
+was organised or hosted, nor a hosting path. Data files under results/ (run metrics and configs, figures) are
+tools' output and are not read; every other tracked text file is, this one excepted (it lists the words)."""
+
+import os
+import re
+import subprocess
+
+import pytest
+
+from tests.helpers import REPO
+
+# the words of the work's organisation and hosting, and the paths of the machines it ran on
+FORBIDDEN = re.compile(
+    r"\bsessions?\b|\bleases?\b|\bleased\b|device time|\blent\b|\blending\b|\bsittings?\b|round of work"
+    r"|/work/|\.dev/|/root/res\b",
+    re.IGNORECASE,
+)
+# the one product use of a forbidden word: pytest's fixture scope
+ALLOWED = re.compile(r"""scope=["']session["']""")
+DATA = re.compile(r"^results/.*\.(csv|json|jsonl|png|svg)$")
+
+
+def tracked_text_files() -> list[str]:
+    """The tracked files that are text (UTF-8 without NUL bytes), less results/ data and this file."""
+    try:
+        listed = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout: no tracked files to read")
+    paths = [p for p in listed.decode().split("\0") if p and not DATA.match(p)]
+    texts = []
+    for path in paths:
+        if path == "tests/test_wording.py" or not os.path.isfile(os.path.join(REPO, path)):
+            continue
+        with open(os.path.join(REPO, path), "rb") as f:
+            data = f.read()
+        try:
+            if b"\0" not in data:
+                data.decode("utf-8")
+                texts.append(path)
+        except UnicodeDecodeError:
+            pass
+    return texts
+
+
+def hits(path: str) -> list[str]:
+    """`path:line: text` for each line of the file with a forbidden word outside the allowed uses."""
+    with open(os.path.join(REPO, path), encoding="utf-8") as f:
+        lines = f.read().splitlines()
+    return [f"{path}:{n}: {line.strip()[:120]}" for n, line in enumerate(lines, 1)
+            if FORBIDDEN.search(ALLOWED.sub("", line))]
+
+
+def test_the_pattern_finds_the_words_and_spares_the_product_uses():
+    assert all(FORBIDDEN.search(s) for s in ("the next Session", "one lease of four GPUs", "a machine lent for",
+                                             "in a later sitting", "cd /work/main", "bash .dev/launch.sh"))
+    assert not any(FORBIDDEN.search(ALLOWED.sub("", s)) for s in (
+        '@pytest.fixture(scope="session")', "rundir.release(run_dir)", "excellent", "silently", "round(x)"))
+
+
+def test_no_tracked_text_file_speaks_of_how_the_work_was_organised():
+    files = tracked_text_files()
+    assert "README.md" in files and "docs/results.md" in files
+    found = [hit for path in files for hit in hits(path)]
+    assert found == [], "words of the work's organisation or hosting:\n" + "\n".join(found)
