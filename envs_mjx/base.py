@@ -1,4 +1,4 @@
-"""The functional environment API shared by every task (docs/design.md, "The environment API").
+"""The functional environment API shared by every task (docs/tasks.md, "Common to all five").
 
 An `Env` is a set of pure functions over a `State` pytree: `reset(key) -> State` and
 `step(state, action) -> State`, both jit- and vmap-able, plus static facts fixed at
