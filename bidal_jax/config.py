@@ -50,6 +50,7 @@ def _name_list(v: str) -> bool:
 
 
 CONV_IMPLS = ("patch", "native")  # NetworkConfig.conv_impl
+NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
 POSITIVE_INT = Rule(int, lambda v: v >= 1, "a positive integer")
 POSITIVE = Rule(float, lambda v: v > 0, "a positive number")
 NON_NEGATIVE = Rule(float, lambda v: v >= 0, "a number >= 0")
@@ -161,6 +162,14 @@ class TrainConfig:
         "comma-separated proprio segments that get observation noise (the paper's: ee_pos,ee_rot,obj_pos); "
         "empty: no noise code at all",
         text("comma-separated proprio segment names"),
+    )
+    noise_variant: str = doc(
+        "derived",
+        "where the observation noise reaches: 'derived' (the noise segments and every feature the env derives "
+        "from them, e.g. obj_rel_pos = obj_pos - ee_pos, as from estimated poses), 'literal' (the noise segments "
+        "alone, the paper's literal reading) or 'noisy_goal' ('derived', and the achieved goal the agent stores "
+        "and relabels with is the noisy estimate too); rewards and success are always judged on the true state",
+        Rule(str, lambda v: v in NOISE_VARIANTS, "one of " + ", ".join(NOISE_VARIANTS)),
     )
     her_k: int = doc(
         4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)",

@@ -107,7 +107,9 @@ def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
         y = jax.lax.stop_gradient(critic_target(reward, next_q, config.gamma, r_min))
         q = networks.critic(params["critic"], phi, batch["action"], batch["goal"])
         critic_loss = jnp.mean(jnp.square(q - y))
-        aux.update(critic_loss=critic_loss, q=q.mean(), phi=jax.lax.stop_gradient(phi))
+        # the batch's (relabelled) sparse r_e, beside r_i: their ratio is how much the intrinsic reward counts
+        aux.update(critic_loss=critic_loss, q=q.mean(), extrinsic_reward=batch["reward"].mean(),
+                   phi=jax.lax.stop_gradient(phi))
         return loss + critic_loss, aux
 
     def actor(actor_params, params, batch):

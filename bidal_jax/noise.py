@@ -2,10 +2,14 @@
 
 `s_noisy = s + κ·n`, `n ~ N(0, σ)` per feature, where σ is the interquartile range (75th
 minus 25th percentile) of that feature over the clean observations collected so far. The
-noise touches only the proprio features of the named segments (the paper's `ee_pos`,
-`ee_rot` and `obj_pos`) of what the agent observes: the policy's input in training and
-evaluation rollouts, and the transitions stored for learning. Achieved goals, rewards and
-success come from the true state.
+noise is drawn for the proprio features of the named segments (the measured ones: the paper's
+`ee_pos`, `ee_rot` and `obj_pos`) of what the agent observes: the policy's input in training and
+evaluation rollouts, and the transitions stored for learning. Features the env derives from
+measured ones (`ObservationSpec.derived`, e.g. nicol's `obj_rel_pos = obj_pos - ee_pos`) carry
+their noise, as they would when computed from estimated poses. Rewards and success come from
+the true state. Two labelled variants (`config.NOISE_VARIANTS`): `literal`, the paper's three segments alone
+(a derived feature stays clean), and `noisy_goal`, where the achieved goal the agent stores and
+relabels with is the noisy estimate too (`ObservationSpec.goal_segment`).
 
 κ is data (`NoiseState.kappa`, one per seed), not a compile-time constant, so one compiled
 epoch serves every κ and κ × seeds are vmapped together. σ is refreshed from the replay
@@ -14,11 +18,29 @@ window's clean copies of the noised features before every cycle's rollout.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+
+from bidal_jax.config import NOISE_VARIANTS
+
+
+class NoiseMap(NamedTuple):
+    """Where the noise of the measured features goes (static, built once per env and config).
+
+    indices: [F] the measured (noised) features in the flat proprio vector, in segment order.
+    spread: [F, P] noise of feature f added to proprio feature p (identity on `indices`, the sources'
+      coefficients on derived features).
+    goal_spread: [F, G] noise added to the achieved goal, or None (it stays true).
+    """
+
+    indices: np.ndarray
+    spread: np.ndarray
+    goal_spread: np.ndarray | None
 
 
 @struct.dataclass
@@ -49,6 +71,39 @@ def feature_indices(proprio_segments: tuple[tuple[str, int], ...], names: tuple[
     return np.concatenate([np.arange(starts[n][0], sum(starts[n])) for n in names] or [np.zeros(0, int)]).astype(int)
 
 
+def _spread_rows(spread: np.ndarray, segments, indices: np.ndarray, source: str, target: slice, coef: float) -> None:
+    """Add `coef` × the noise of measured segment `source` into columns `target` of `spread` [F, ·]."""
+    source_cols = np.arange(*segments.segment_slice(source).indices(segments.proprio_size))
+    for row, feature in enumerate(indices):
+        hit = np.nonzero(source_cols == feature)[0]
+        if len(hit):
+            spread[row, target.start + hit[0]] += coef
+
+
+def noise_map(spec, names: tuple[str, ...], variant: str = "derived") -> NoiseMap:
+    """The `NoiseMap` of noise on the measured segments `names` of observation spec `spec` (an
+    `envs_mjx.ObservationSpec`) under `variant` (`NOISE_VARIANTS`). Raises ValueError naming an unknown
+    segment or variant."""
+    if variant not in NOISE_VARIANTS:
+        raise ValueError(f"unknown noise variant {variant!r}; valid: {', '.join(NOISE_VARIANTS)}")
+    indices = feature_indices(spec.proprio_segments, names)
+    spread = np.zeros((len(indices), spec.proprio_size), np.float32)
+    spread[np.arange(len(indices)), indices] = 1.0
+    if variant != "literal":
+        for target, sources in spec.derived:
+            for source, coef in sources:
+                if source in names:
+                    _spread_rows(spread, spec, indices, source, spec.segment_slice(target), coef)
+    goal_spread = None
+    if variant == "noisy_goal":
+        if spec.goal_segment not in names:
+            raise ValueError(f"noise variant noisy_goal: the achieved goal is segment {spec.goal_segment!r}, "
+                             f"which gets no noise (noised: {', '.join(names) or 'none'})")
+        goal_spread = np.zeros((len(indices), spec.goal_size), np.float32)
+        _spread_rows(goal_spread, spec, indices, spec.goal_segment, slice(0, spec.goal_size), 1.0)
+    return NoiseMap(indices, spread, goal_spread)
+
+
 def init(kappa: float | jax.Array, n_features: int) -> NoiseState:
     return NoiseState(kappa=jnp.asarray(kappa, jnp.float32), sigma=jnp.zeros((n_features,), jnp.float32))
 
@@ -68,8 +123,12 @@ def refresh(state: NoiseState, clean: jax.Array, n_episodes: jax.Array) -> Noise
     return state.replace(sigma=interquartile_range(clean.reshape(-1, clean.shape[-1]), valid))
 
 
-def observe(state: NoiseState, indices: np.ndarray, obs: dict, key: jax.Array) -> dict:
-    """What the agent sees of batched `obs`: proprio features `indices` plus κ·N(0, σ) noise (Eq. 9)."""
+def observe(state: NoiseState, nmap: NoiseMap, obs: dict, key: jax.Array) -> dict:
+    """What the agent sees of batched `obs`: the measured features `nmap.indices` plus κ·N(0, σ) noise
+    (Eq. 9), spread onto the features derived from them (and the achieved goal) by `nmap`."""
     proprio = obs["proprio"]
-    n = jax.random.normal(key, (*proprio.shape[:-1], len(indices)))
-    return {**obs, "proprio": proprio.at[..., indices].add(state.kappa * state.sigma * n)}
+    noise = state.kappa * state.sigma * jax.random.normal(key, (*proprio.shape[:-1], len(nmap.indices)))
+    seen = {**obs, "proprio": proprio + noise @ jnp.asarray(nmap.spread)}
+    if nmap.goal_spread is not None:
+        seen["achieved_goal"] = obs["achieved_goal"] + noise @ jnp.asarray(nmap.goal_spread)
+    return seen

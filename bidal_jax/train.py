@@ -157,7 +157,8 @@ def make_train(env, config: Config, env_shards: int = 1):
     rep_opt, actor_opt = optimizer(train.critic_lr, train.grad_clip), optimizer(train.actor_lr, train.grad_clip)
     future_p = her_probability(train.her_k)
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
-    noisy = noise.feature_indices(spec.proprio_segments, noise.parse_segments(train.noise_segments))
+    noise_map = noise.noise_map(spec, noise.parse_segments(train.noise_segments), train.noise_variant)
+    noisy = noise_map.indices
     if len(noisy) and env_shards > 1:  # σ is a quantile of the whole buffer, which no shard holds
         raise ConfigError(f"--noise-segments {train.noise_segments!r} runs with 1 env shard only "
                           f"(here {env_shards}; `device_layout` gives 1)")
@@ -169,7 +170,7 @@ def make_train(env, config: Config, env_shards: int = 1):
 
     def observer(ts: TrainState) -> acting.Observer | None:
         """What the agent sees of an observation: with noise on the `noisy` features, if any."""
-        return (lambda obs, key: noise.observe(ts.noise, noisy, obs, key)) if len(noisy) else None
+        return (lambda obs, key: noise.observe(ts.noise, noise_map, obs, key)) if len(noisy) else None
 
     def collect(ts: TrainState, key: jax.Array) -> tuple[dict, jax.Array]:
         """One exploring episode in each of the shard's envs, as replay episodes; train success."""
@@ -248,10 +249,13 @@ def make_train(env, config: Config, env_shards: int = 1):
         ts, metrics = jax.lax.scan(cycle, ts, None, length=train.cycles_per_epoch)
         key, key_eval = jax.random.split(ts.key)
         greedy = policy(ts, explore=False)
-        success = acting.evaluate(env, greedy, shards.own_key(key_eval), n_eval, observe=observer(ts))
+        success, goals = acting.evaluate_goals(env, greedy, shards.own_key(key_eval), n_eval, observe=observer(ts))
         ts = ts.replace(key=key, eval_key=key_eval, epoch=ts.epoch + 1)
         metrics = {**jax.tree.map(jnp.mean, metrics), "eval_success": shards.average(success.mean()),
                    "env_steps": ts.env_steps}
+        for name, mask in env.goal_subsets(goals).items():  # e.g. nicol_lift's air goals: success among them
+            hits, count = shards.average((success * mask).sum()), shards.average(mask.sum().astype(jnp.float32))
+            metrics[f"eval_success_{name}"] = hits / jnp.maximum(count, 1.0)
         return ts, metrics
 
     return init, epoch

@@ -55,6 +55,12 @@ class ObservationSpec:
     proprio_segments: tuple[tuple[str, int], ...]
     goal_size: int
     image_shape: tuple[int, int, int] = IMAGE_SHAPE
+    # segments computed from others, as (segment, ((source, coefficient), ...)): a linear combination of
+    # equally sized source segments, e.g. ("obj_rel_pos", (("obj_pos", 1.0), ("ee_pos", -1.0))); observation
+    # noise on a source reaches the derived segment (bidal_jax/noise.py)
+    derived: tuple[tuple[str, tuple[tuple[str, float], ...]], ...] = ()
+    # the proprio segment the achieved goal equals, if any (the noisy-goal variant of the noise experiment)
+    goal_segment: str | None = None
 
     @property
     def proprio_size(self) -> int:
@@ -78,7 +84,12 @@ class ObservationSpec:
         unknown = sorted(set(drop) - set(self.segment_names))
         if unknown:
             raise ValueError(f"cannot drop unknown segments {unknown}; segments are {self.segment_names}")
-        return dataclasses.replace(self, proprio_segments=tuple(s for s in self.proprio_segments if s[0] not in drop))
+        return dataclasses.replace(
+            self,
+            proprio_segments=tuple(s for s in self.proprio_segments if s[0] not in drop),
+            derived=tuple(d for d in self.derived if d[0] not in drop and not {n for n, _ in d[1]} & set(drop)),
+            goal_segment=None if self.goal_segment in drop else self.goal_segment,
+        )
 
     def shapes(self) -> dict[str, tuple[tuple[int, ...], Any]]:
         """Shape and dtype of every observation entry."""
@@ -158,6 +169,9 @@ class Env(abc.ABC):
     """
 
     name: str = "env"
+    # rays per image pixel along each axis: the frame is cast finer and area-averaged down to 42×42
+    # (docs/tasks.md, "camera"); the cost of the camera grows with its square
+    camera_supersample: int = 2
     # whether `exploration_reset` differs from `reset` (see there)
     has_exploration_start: bool = False
 
@@ -184,7 +198,7 @@ class Env(abc.ABC):
         self.observation_spec = observation_spec
         self.render = render
         self.camera_name = camera_name
-        self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0])
+        self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0], supersample=self.camera_supersample)
 
     def use_backend(
         self, backend: str, worlds: int = 1, contacts_per_world: int = 32, constraints_per_world: int = 128
@@ -275,6 +289,11 @@ class Env(abc.ABC):
         """The achieved goal (G,) of `data`."""
 
     # ----- the API ---------------------------------------------------------------------
+    def goal_subsets(self, goal: jax.Array) -> dict[str, jax.Array]:
+        """Named subsets of desired goals [..., G] that evaluation also reports success over (e.g. nicol_lift's
+        air goals), as boolean masks [...]; none by default."""
+        return {}
+
     def compute_reward(self, achieved_goal: jax.Array, desired_goal: jax.Array) -> jax.Array:
         """Sparse extrinsic reward (paper Eq. 6), batched, for HER relabelling."""
         return sparse_reward(achieved_goal, desired_goal, self.epsilon)

@@ -1,8 +1,10 @@
 """A pure-JAX ray-cast camera shared by every environment (docs/tasks.md, "camera").
 
-The paper's visual input s^v_t is a 42×42 grayscale frame of the scene (Table I). Each
-pixel is one ray from the camera centre; its value is the gray level of the first geom the
-ray hits (the luminance of the geom's colour), or the background. The image is rendered
+The paper's visual input s^v_t is a 42×42 grayscale frame of the scene (Table I), "rendered ...
+converted to gray format and scaled down": the camera casts `supersample`² rays per output pixel
+(a frame of `resolution · supersample` rays a side), each ray takes the gray level of the first geom
+it hits (the luminance of the geom's colour) or the background, and each output pixel is the mean of
+its rays (area averaging), so a body smaller than a pixel still shades it. The image is rendered
 inside jit on CPU and GPU alike and is what `mujoco.mjx.ray` cast per pixel sees (the same
 intersection functions and geoms; tests/envs_mjx/test_camera.py compares them), organised for speed
 (the camera bounds the image agents: docs/results.md):
@@ -77,10 +79,20 @@ def cast(directions: jax.Array, origin: jax.Array, geom_type: int, size: jax.Arr
     return jax.vmap(_RAY_FN[geom_type], in_axes=(None, None, 0))(size, pnt, vecs)
 
 
-def nearest(dist: jax.Array, gray: jax.Array, hit: jax.Array, level) -> tuple[jax.Array, jax.Array]:
-    """Merge one geom's distances `hit` (gray `level`) into the running nearest (dist, gray)."""
+def nearest(dist: jax.Array, label: jax.Array, hit: jax.Array, value) -> tuple[jax.Array, jax.Array]:
+    """Merge one geom's distances `hit` (labelled `value`) into the running nearest (dist, label)."""
     closer = hit < dist
-    return jnp.where(closer, hit, dist), jnp.where(closer, jnp.asarray(level, gray.dtype), gray)
+    return jnp.where(closer, hit, dist), jnp.where(closer, jnp.asarray(value, label.dtype), label)
+
+
+def area_average(gray: jax.Array, factor: int) -> jax.Array:
+    """Scale a [H·f, W·f] gray frame down by `factor` f: each output pixel the rounded mean of its f×f block."""
+    rows, cols = gray.shape[0] // factor, gray.shape[1] // factor
+    blocks = gray.reshape(rows, factor, cols, factor).astype(jnp.float32)
+    return jnp.round(blocks.mean(axis=(1, 3))).astype(jnp.uint8)
+
+
+BACKGROUND = -1  # the geom id of a ray that hits nothing
 
 
 class Camera:
@@ -91,48 +103,62 @@ class Camera:
       camera_name: name of the `<camera>` element.
       resolution: image height and width in pixels.
       background: gray level of pixels whose ray hits nothing.
+      supersample: rays per pixel along each axis; the frame is cast at `resolution · supersample`
+        rays a side and area-averaged down (1: one ray per pixel, the frame `mjx.ray` sees).
     """
 
-    def __init__(self, mj_model: mujoco.MjModel, camera_name: str, resolution: int, background: int = 0):
+    def __init__(self, mj_model: mujoco.MjModel, camera_name: str, resolution: int, background: int = 0,
+                 supersample: int = 1):
         cam_id = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_CAMERA, camera_name)
         if cam_id < 0:
             raise ValueError(f"model has no camera named {camera_name!r}")
         _assert_static(mj_model, cam_id, camera_name)
         data = mujoco.MjData(mj_model)
         mujoco.mj_forward(mj_model, data)
-        self.resolution = resolution
+        if supersample < 1:
+            raise ValueError(f"supersample={supersample}: rays per pixel side must be 1 or more")
+        self.resolution, self.supersample = resolution, supersample
+        self.rays_per_side = resolution * supersample
         self.position = np.array(data.cam_xpos[cam_id], np.float32)
         self.rotation = np.array(data.cam_xmat[cam_id], np.float64).reshape(3, 3)
         self.tan_half_fovy = float(np.tan(np.deg2rad(mj_model.cam_fovy[cam_id]) / 2.0))
         # pixel centres in the camera frame (x right, y up, looking along -z)
-        centres = (np.arange(resolution) + 0.5) / resolution * 2.0 - 1.0
+        centres = (np.arange(self.rays_per_side) + 0.5) / self.rays_per_side * 2.0 - 1.0
         x = centres[None, :] * self.tan_half_fovy
         y = -centres[:, None] * self.tan_half_fovy
         local = np.stack(np.broadcast_arrays(x, y, -np.ones_like(x + y)), axis=-1).reshape(-1, 3)
         local /= np.linalg.norm(local, axis=-1, keepdims=True)
         self.directions = (local @ self.rotation.T).astype(np.float32)
+        # indexed by geom id; the last entry, index BACKGROUND, is the background's
         self.gray_levels = np.append(geom_gray_levels(mj_model), np.uint8(background))
         geoms = visible_geoms(mj_model)
         fixed = [g for g in geoms if mj_model.body_weldid[mj_model.geom_bodyid[g]] == 0]
         self.moving_geoms = tuple((g, int(mj_model.geom_type[g])) for g in geoms if g not in fixed)
         # the geoms fixed to the world, cast once: the background the moving geoms cover
         dist = jnp.full(len(local), jnp.inf, jnp.float32)
-        gray = jnp.full(len(local), background, jnp.uint8)
+        ids = jnp.full(len(local), BACKGROUND, jnp.int32)
         for g in fixed:
             hit = cast(jnp.asarray(self.directions), jnp.asarray(self.position), int(mj_model.geom_type[g]),
                        jnp.asarray(mj_model.geom_size[g], jnp.float32), jnp.asarray(data.geom_xpos[g], jnp.float32),
                        jnp.asarray(data.geom_xmat[g].reshape(3, 3), jnp.float32))
-            dist, gray = nearest(dist, gray, hit, self.gray_levels[g])
-        self.static_dist, self.static_gray = np.asarray(dist), np.asarray(gray)
+            dist, ids = nearest(dist, ids, hit, g)
+        self.static_dist, self.static_ids = np.asarray(dist), np.asarray(ids)
 
-    def render(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
-        """Render the scene of `data` (positions must be current) as uint8 [H, W, 1]."""
+    def geom_map(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
+        """The id of the first geom each ray hits (`BACKGROUND` where none), int32 [rays_per_side, rays_per_side],
+        for the scene of `data` (positions must be current): what `mjx.ray` returns per ray."""
         dirs, origin = jnp.asarray(self.directions), jnp.asarray(self.position)
-        dist, gray = jnp.asarray(self.static_dist), jnp.asarray(self.static_gray)
+        dist, ids = jnp.asarray(self.static_dist), jnp.asarray(self.static_ids)
         for g, geom_type in self.moving_geoms:
             hit = cast(dirs, origin, geom_type, mjx_model.geom_size[g], data.geom_xpos[g], data.geom_xmat[g])
-            dist, gray = nearest(dist, gray, hit, self.gray_levels[g])
-        return gray.reshape(self.resolution, self.resolution, 1)
+            dist, ids = nearest(dist, ids, hit, g)
+        return ids.reshape(self.rays_per_side, self.rays_per_side)
+
+    def render(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
+        """Render the scene of `data` (positions must be current) as uint8 [H, W, 1]: each ray's gray level,
+        area-averaged over the `supersample`² rays of a pixel."""
+        gray = jnp.asarray(self.gray_levels)[self.geom_map(mjx_model, data)]
+        return area_average(gray, self.supersample)[..., None]
 
     def project(self, point: np.ndarray) -> tuple[float, float]:
         """(row, col) pixel coordinates of a world point, continuous, for tests and tools."""
@@ -141,5 +167,5 @@ class Camera:
             raise ValueError(f"point {point} is behind the camera")
         u = local[0] / (-local[2]) / self.tan_half_fovy
         v = -local[1] / (-local[2]) / self.tan_half_fovy
-        half = self.resolution / 2.0
+        half = self.resolution / 2.0  # in output pixels
         return (v + 1.0) * half, (u + 1.0) * half

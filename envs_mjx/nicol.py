@@ -2,7 +2,8 @@
 
 The scene (`assets/nicol.xml`, documented in `assets/README.md`) is NICOL's right
 OpenManipulator-P arm with a simplified RH8D hand at a table, a 0.05 m cube and a dark
-red ellipsoid goal marker, seen by the fixed head camera.
+red ellipsoid goal marker, seen by a fixed camera over the table in front of the robot and to its
+right (the hand never hides the cube from it: `python -m experiments.probes.visibility`).
 
 Action (A = 7, paper Table I), each entry in [-1, 1]:
   0-2  hand position increment in Cartesian space, at most `MAX_MOVE` = 0.05 m per axis;
@@ -43,10 +44,14 @@ Goal (G = 3): the cube centre; ε = 0.05 m, T = 50 steps. The cube starts uprigh
 aligned with the resting hand, uniformly within ±`CUBE_START_RANGE` (xy) of a point in
 front of the hand's rest position.
 - nicol_slide: goal on the table within ±`SLIDE_GOAL_RANGE` of the cube's start region.
-- nicol_lift: goal `LIFT_HEIGHT` above the table top within ±`LIFT_GOAL_RANGE` (xy) of
-  the cube's start.
+- nicol_lift: goal within ±`LIFT_GOAL_RANGE` (xy) of the cube's start; as in HER's pick-and-place
+  (Gymnasium-Robotics Fetch, whose paper reports that pick-and-place trains without grasped starts
+  only when goals are sometimes on the table), on the table with probability
+  1 - `air_goal_probability` (0.5) and otherwise `LIFT_HEIGHT` above the table top. `goal_subsets`
+  names the air goals, so that evaluation reports the lifting skill on its own (`eval_success_air`),
+  and `never_lift_success` is what a policy that slides but never lifts scores.
   Its `exploration_reset` starts with the cube already held in the resting hand (the
-  HER paper's pick-and-place aid; the trainer's `exploration_starts` sets how often).
+  HER paper's pick-and-place aid, a labelled variant: the trainer's `exploration_starts`).
 - nicol_lift_reduced (`NicolLiftReduced`): lift without obj_rot, obj_velp, obj_velr and
   obj_rel_pos (D = 28), for the transfer experiment (paper Sec. IV-C).
 """
@@ -77,6 +82,8 @@ PROPRIO_SEGMENTS = (
     ("qdot", 8),
 )
 REDUCED_DROP = ("obj_rot", "obj_velp", "obj_velr", "obj_rel_pos")
+# segments computed from measured ones: observation noise on the sources reaches them (bidal_jax/noise.py)
+DERIVED = (("obj_rel_pos", (("obj_pos", 1.0), ("ee_pos", -1.0))),)
 
 EPISODE_LENGTH = 50
 EPSILON = 0.05  # m
@@ -93,7 +100,8 @@ CUBE_HALF = 0.025
 CUBE_START_RANGE = 0.1  # ± m around the keyframe's cube position
 SLIDE_GOAL_RANGE = 0.15  # ± m beyond the start region
 LIFT_GOAL_RANGE = 0.1  # ± m around the cube's start
-LIFT_HEIGHT = (0.05, 0.25)  # m above the table top
+LIFT_HEIGHT = (0.05, 0.25)  # m of an air goal above the table top
+AIR_GOAL_PROBABILITY = 0.5  # HER's pick-and-place: half the goals in the air, half on the table
 GRASP_CLOSE_TIME = 1.0  # s for fingers and thumb (at most 2 rad/s) to close on the cube, without gravity
 GRASP_SETTLE_TIME = 0.4  # s for the held cube to settle under gravity
 
@@ -257,8 +265,9 @@ class NicolEnv(Env):
             episode_length=EPISODE_LENGTH,
             epsilon=EPSILON,
             action_size=7,
-            observation_spec=ObservationSpec(proprio_segments=PROPRIO_SEGMENTS, goal_size=3),
-            camera_name="head",
+            observation_spec=ObservationSpec(proprio_segments=PROPRIO_SEGMENTS, goal_size=3, derived=DERIVED,
+                                             goal_segment="obj_pos"),
+            camera_name="front",
             render=render,
         )
         body, joint = mujoco.mjtObj.mjOBJ_BODY, mujoco.mjtObj.mjOBJ_JOINT
@@ -375,15 +384,35 @@ class NicolSlide(NicolEnv):
 
 
 class NicolLift(NicolEnv):
-    """Grasp the cube and lift it to a goal in the air."""
+    """Grasp the cube and lift it to a goal in the air (or move it to one on the table).
+
+    Args:
+      render: as for `Env`.
+      air_goal_probability: share of goals `LIFT_HEIGHT` above the table; the rest lie on it
+        (1.0: every goal in the air, a labelled variant).
+    """
 
     name = "nicol_lift"
     has_exploration_start = True
 
-    def __init__(self, render: bool = True):
+    def __init__(self, render: bool = True, air_goal_probability: float = AIR_GOAL_PROBABILITY):
+        if not 0.0 <= air_goal_probability <= 1.0:
+            raise ValueError(f"air_goal_probability={air_goal_probability}: must be in [0, 1]")
         super().__init__(render=render)
+        self.air_goal_probability = air_goal_probability
         held_qpos, held_ctrl = held_cube_start(self.mj_model)
         self._held_qpos, self._held_ctrl = jnp.asarray(held_qpos), jnp.asarray(held_ctrl)
+
+    def goal_subsets(self, goal: jax.Array) -> dict[str, jax.Array]:
+        """{"air": whether each goal [..., 3] lies above the table (the lifting skill)}."""
+        return {"air": goal[..., 2] > TABLE_HEIGHT + CUBE_HALF + 1e-3}
+
+    def never_lift_success(self) -> dict[str, float]:
+        """Success of a policy that slides the cube perfectly but never lifts it, over all goals and over
+        air goals: an air goal counts when its height above the resting cube is at most ε."""
+        low, high = LIFT_HEIGHT[0] - CUBE_HALF, LIFT_HEIGHT[1] - CUBE_HALF
+        air = float(np.clip((EPSILON - low) / (high - low), 0.0, 1.0))
+        return {"all": 1.0 - self.air_goal_probability * (1.0 - air), "air": air}
 
     def _exploration_reset_data(self, key):
         # the goal as in `reset` (drawn for a cube on the table); the cube starts in the hand
@@ -391,9 +420,11 @@ class NicolLift(NicolEnv):
         return data.replace(qpos=self._held_qpos, ctrl=self._held_ctrl), goal
 
     def _sample_goal(self, key, cube_pos):
-        key_xy, key_z = jax.random.split(key)
+        key_xy, key_z, key_air = jax.random.split(key, 3)
         xy = cube_pos[:2] + jax.random.uniform(key_xy, (2,), minval=-LIFT_GOAL_RANGE, maxval=LIFT_GOAL_RANGE)
-        z = TABLE_HEIGHT + jax.random.uniform(key_z, (), minval=LIFT_HEIGHT[0], maxval=LIFT_HEIGHT[1])
+        height = jax.random.uniform(key_z, (), minval=LIFT_HEIGHT[0], maxval=LIFT_HEIGHT[1])
+        in_air = jax.random.uniform(key_air) < self.air_goal_probability
+        z = TABLE_HEIGHT + jnp.where(in_air, height, CUBE_HALF)
         return jnp.concatenate([xy, z[None]])
 
 
@@ -405,6 +436,6 @@ class NicolLiftReduced(NicolLift):
 
     name = "nicol_lift_reduced"
 
-    def __init__(self, render: bool = True):
-        super().__init__(render=render)
+    def __init__(self, render: bool = True, air_goal_probability: float = AIR_GOAL_PROBABILITY):
+        super().__init__(render=render, air_goal_probability=air_goal_probability)
         self.observation_spec = self.observation_spec.without(REDUCED_DROP)

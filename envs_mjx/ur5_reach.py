@@ -78,7 +78,7 @@ class UR5Reach(JointReachEnv):
     def __init__(self, render: bool = True):
         mj_model = load_model("ur5_reach.xml")
         super().__init__(
-            mj_model, max_delta=MAX_DELTA, goal_size=3, camera_name="front", episode_length=50, epsilon=0.1,
+            mj_model, max_delta=MAX_DELTA, goal_size=3, camera_name="side", episode_length=50, epsilon=0.1,
             render=render,
         )
         body_ids = [mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, f"goal_{n}") for n in POINT_NAMES]

@@ -87,8 +87,9 @@ def epoch_row(epoch: int, metrics: dict, epoch_seconds: float, steps_before: flo
     row = {"epoch": epoch}
     for key, value in sorted(metrics.items()):
         row[key] = float(np.mean(value))
-    for i, value in enumerate(np.atleast_1d(metrics["eval_success"])):
-        row[f"eval_success_seed{i}"] = float(value)
+    for key in sorted(k for k in metrics if k.startswith("eval_success")):  # also the goal subsets' (air)
+        for i, value in enumerate(np.atleast_1d(metrics[key])):
+            row[f"{key}_seed{i}"] = float(value)
     steps = float(np.sum(metrics["env_steps"]))
     row["env_steps_total"] = steps
     row["wall_time"] = wall

@@ -115,11 +115,11 @@ def evaluate_seeds(env, trained: TrainedPolicy, keys: jax.Array, episodes: int,
     on the run's noise segments or on `segments` (F features in their order)."""
     if segments is None:
         segments = noise.parse_segments(trained.config.train.noise_segments)
-    indices = noise.feature_indices(env.observation_spec.proprio_segments, segments)
+    noise_map = noise.noise_map(env.observation_spec, segments, trained.config.train.noise_variant)
 
     def one(params, key, seed_noise):
         policy = make_policy(trained.networks, trained.config, params)
-        observe = None if seed_noise is None else functools.partial(noise.observe, seed_noise, indices)
+        observe = None if seed_noise is None else functools.partial(noise.observe, seed_noise, noise_map)
         return evaluate(env, policy, key, episodes, observe=observe)
 
     return np.asarray(jax.jit(jax.vmap(one))(trained.params, keys, noise_state))

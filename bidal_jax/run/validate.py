@@ -68,13 +68,17 @@ def check(config: Config, *, env_names: Iterable[str]) -> None:
 
 def check_env_support(train: TrainConfig, env: Any) -> None:
     """Raise `ConfigError` when `train` asks `env` for something it lacks (exploration starts,
-    the proprio segments that get noise)."""
+    the proprio segments that get noise, a noisy achieved goal)."""
     unknown = [n for n in noise.parse_segments(train.noise_segments) if n not in env.observation_spec.segment_names]
     if unknown:
         raise ConfigError(
             f"{option('noise_segments')} {train.noise_segments}: env {env.name} has no segment {unknown[0]!r}; "
             f"its segments are {', '.join(env.observation_spec.segment_names)}"
         )
+    try:
+        noise.noise_map(env.observation_spec, noise.parse_segments(train.noise_segments), train.noise_variant)
+    except ValueError as err:
+        raise ConfigError(f"{option('noise_variant')} {train.noise_variant}: {err}") from err
     if train.exploration_starts > 0 and not env.has_exploration_start:
         raise ConfigError(
             f"{option('exploration_starts')} {train.exploration_starts}: env {env.name} has no exploration start; "

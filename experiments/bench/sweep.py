@@ -11,7 +11,9 @@ Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the e
 (each builds, compiles and trains its own program). A JSON line per epoch: variant, the physics' fingerprint
 (`Env.physics_id`), epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds since the
 process started (`process_seconds`, imports and every earlier variant included) and since the variant started
-(`variant_seconds`, its build and compilation included). `--physics warp` steps the env with MuJoCo Warp
+(`variant_seconds`, its build and compilation included), and the epoch's mean extrinsic and intrinsic reward per
+sampled transition; the report adds the area under the curve (mean success over the epochs run) and the mean
+|r_i| / |r_e|, what the λ sweep (`--variant intrinsic_lambda=1`) reads. `--physics warp` steps the env with MuJoCo Warp
 (envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up, `--until S` once its
 mean eval success has reached S (a time-to-success sweep needs no epochs past its last threshold).
 """
@@ -32,6 +34,16 @@ from bidal_jax.config import ConfigError, NetworkConfig, TrainConfig  # noqa: E4
 from experiments.bench.programs import program_config, seeded_program  # noqa: E402
 
 THRESHOLDS = (0.5, 0.8, 0.9)
+REWARDS = ("extrinsic_reward", "intrinsic_reward")
+
+
+def reward_ratio(rows: list[dict]) -> float | None:
+    """Mean |r_i| / |r_e| over the epochs of a variant (None without an intrinsic reward)."""
+    if not rows or "intrinsic_reward" not in rows[0]:
+        return None
+    r_i = np.mean([abs(r["intrinsic_reward"]) for r in rows])
+    r_e = np.mean([abs(r["extrinsic_reward"]) for r in rows])
+    return float(r_i / max(r_e, 1e-9))
 
 
 def parse_variant(text: str) -> tuple[dict, dict, dict]:
@@ -75,6 +87,8 @@ def train_variant(args, label: str, overrides: dict, network: dict, options: dic
                "eval_success_seeds": [round(float(s), 4) for s in success],
                "env_steps_per_seed": int(np.asarray(state.env_steps)[0]),
                "updates_per_seed": int(np.asarray(state.updates)[0]),
+               # mean r_e and r_i per sampled transition (Eq. 4, 6), r_i absent without forward model
+               **{k: float(np.mean(metrics[k])) for k in REWARDS if k in metrics},
                "process_seconds": now - PROCESS_START, "variant_seconds": now - start}
         sink.write(json.dumps(row) + "\n")
         sink.flush()
@@ -98,13 +112,17 @@ def report(paths: list[str]) -> str:
             for line in f:
                 row = json.loads(line)
                 by_variant.setdefault(f"{path.split('/')[-1]}: {row['variant']}", []).append(row)
-    head = ["variant", "epochs", "last-5 mean", *(f"to {t}: s / env steps" for t in THRESHOLDS), "s per epoch"]
+    head = ["variant", "epochs", "last-5 mean", "AUC", *(f"to {t}: s / env steps" for t in THRESHOLDS),
+            "|r_i| / |r_e|", "s per epoch"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for label, rows in by_variant.items():
-        cells = [label, str(rows[-1]["epoch"]), f"{np.mean([r['eval_success'] for r in rows[-5:]]):.3f}"]
+        cells = [label, str(rows[-1]["epoch"]), f"{np.mean([r['eval_success'] for r in rows[-5:]]):.3f}",
+                 f"{np.mean([r['eval_success'] for r in rows]):.3f}"]
         for t in THRESHOLDS:
             hit = first_reach(rows, t)
             cells.append(f"{hit['variant_seconds']:.0f} / {hit['env_steps_per_seed']:,}" if hit else "—")
+        ratio = reward_ratio(rows)
+        cells.append("—" if ratio is None else f"{ratio:.3f}")
         pace = (rows[-1]["variant_seconds"] - rows[0]["variant_seconds"]) / max(len(rows) - 1, 1)
         cells.append(f"{pace:.2f}")
         lines.append("| " + " | ".join(cells) + " |")

@@ -21,6 +21,11 @@ workspace:
 
     python -m experiments.probes.vision --envs nicol_slide --target ee_pos --random-steps 10
 
+`--phase contact` (NICOL) takes the frames instead from the visibility probe's scripted grasp and push
+episodes where the hand is at the cube, the frames a hidden cube would spoil:
+
+    python -m experiments.probes.vision --envs nicol_slide --phase contact
+
 Frames: `--frames` start states of `env.reset` (each task draws its start, e.g. the arm's joint
 angles or the cube's place, uniformly over the task's range: many distinct states, where the
 frames of an episode are alike), or the states `--random-steps` random actions later; a fifth
@@ -47,11 +52,14 @@ import envs_mjx
 from bidal_jax.config import ConfigError, NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
 from bidal_jax.run import validate
+from envs_mjx.nicol import NicolEnv
 from experiments import cli
+from experiments.probes import visibility
 
 PROG = "python -m experiments.probes.vision"
 HELD_OUT = 0.2  # share of the frames the probe is tested on
 FRAME_CHUNK = 256  # frames simulated at once (vmapped): 16,000 NICOL envs stepped at once need over 20 GB
+PHASE_FRAMES_PER_EPISODE = 8  # scripted episodes run per frame asked for in a phase (`--phase`): at least this many
 ACHIEVED_GOAL = "achieved_goal"  # the default target; any other is a proprio segment's name
 
 
@@ -84,6 +92,28 @@ def frames(env, key: jax.Array, n: int, random_steps: int = 0,
         :, env.observation_spec.segment_slice(target)]
     chex.assert_rank(labels, 2)
     return np.asarray(obs["image"]), np.asarray(labels)
+
+
+def phase_frames(env, key: jax.Array, n: int, phase: str, target: str = ACHIEVED_GOAL) -> tuple[np.ndarray, np.ndarray]:
+    """(images, targets) of at most `n` NICOL frames in `phase` of the visibility probe's scripted episodes
+    (`experiments.probes.visibility`: e.g. `contact`, the hand at the cube), in random order."""
+    spec = env.observation_spec
+
+    def record(state):
+        proprio = state.obs["proprio"]
+        label = state.obs[ACHIEVED_GOAL] if target == ACHIEVED_GOAL else proprio[spec.segment_slice(target)]
+        return state.obs["image"], label
+
+    key_episodes, key_order = jax.random.split(key)
+    episodes = -(-n // PHASE_FRAMES_PER_EPISODE)
+    chunks = [visibility.nicol_rollouts(env, min(FRAME_CHUNK, episodes - i), visibility.SCRIPT_NOISE,
+                                        jax.random.fold_in(key_episodes, i), record)
+              for i in range(0, episodes, FRAME_CHUNK)]
+    keep = [np.flatnonzero(ph == visibility.PHASES_NICOL.index(phase)) for _, ph in chunks]
+    images = np.concatenate([imgs[k] for ((imgs, _), _), k in zip(chunks, keep)])
+    labels = np.concatenate([lab[k] for ((_, lab), _), k in zip(chunks, keep)])
+    order = np.asarray(jax.random.permutation(key_order, len(images)))[:n]
+    return images[order], labels[order]
 
 
 def fit(model: Probe, key: jax.Array, images: np.ndarray, targets: np.ndarray, steps: int, batch: int, lr: float):
@@ -157,6 +187,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--random-steps", type=int, default=0,
         help="uniformly random actions from each start state before its frame (default 0: start states)",
     )
+    parser.add_argument(
+        "--phase", default="", choices=("",) + visibility.PHASES_NICOL,
+        help="NICOL only: frames of this phase of scripted grasp and push episodes (experiments.probes.visibility; "
+             "e.g. contact: the hand at the cube) instead of start states",
+    )
     parser.add_argument("--out", default="", help="also write the table to this file")
     return parser
 
@@ -183,10 +218,10 @@ def check_target(target: str, envs: dict) -> None:
                 f"--target {target}: not a proprio segment of {name}; allowed: {ACHIEVED_GOAL}, {', '.join(segments)}")
 
 
-def label(name: str, target: str, random_steps: int) -> str:
+def label(name: str, target: str, random_steps: int, phase: str = "") -> str:
     """The table's env column: the env, and what the probe reads where it is not the default."""
     parts = ([] if target == ACHIEVED_GOAL else [target]) + (
-        [f"after {random_steps} random actions"] if random_steps else [])
+        [f"after {random_steps} random actions"] if random_steps else []) + ([f"{phase} frames"] if phase else [])
     return f"{name}: {' '.join(parts)}" if parts else name
 
 
@@ -204,6 +239,8 @@ def main(argv: list[str] | None = None) -> int:
         names, strides = checked(args)
         envs = {name: envs_mjx.make(name, render=True) for name in names}
         check_target(args.target, envs)
+        if args.phase and not all(isinstance(env, NicolEnv) for env in envs.values()):
+            raise ConfigError(f"--phase {args.phase}: NICOL envs only (nicol_slide, nicol_lift), not {args.envs}")
     except ConfigError as err:
         return cli.exit_code(err)
     lines = [
@@ -217,10 +254,13 @@ def main(argv: list[str] | None = None) -> int:
     key_frames, key_fit = jax.random.split(jax.random.PRNGKey(args.seed))
     for name, env in envs.items():
         start = time.time()
-        images, goals = frames(env, key_frames, args.frames, args.random_steps, args.target)
+        if args.phase:
+            images, goals = phase_frames(env, key_frames, args.frames, args.phase, args.target)
+        else:
+            images, goals = frames(env, key_frames, args.frames, args.random_steps, args.target)
         for s in strides:
             result = probe(images, goals, env.epsilon, s, key_fit, args.steps, args.batch, args.lr)
-            lines.append(row(label(name, args.target, args.random_steps), env, s, result))
+            lines.append(row(label(name, args.target, args.random_steps, args.phase), env, s, result))
             print(f"{lines[-1]}  ({time.time() - start:.0f} s)", flush=True)
             start = time.time()
     if args.out:

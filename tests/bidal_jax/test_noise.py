@@ -1,6 +1,7 @@
 """Observation noise (paper Eq. 9): σ is numpy's IQR of the clean history, only the named
-segments get noise (never achieved goals or rewards), κ = 0 equals a run without noise bit
-for bit, and one traced epoch serves every κ."""
+segments and the features derived from them get noise (achieved goals only in the noisy-goal
+variant, rewards never), κ = 0 equals a run without noise bit for bit, and one traced epoch
+serves every κ."""
 
 import dataclasses
 
@@ -15,6 +16,8 @@ from bidal_jax import acting, noise
 from bidal_jax.config import Config, RunConfig, TrainConfig
 from bidal_jax.run.devices import make_seeded, seed_sharding
 from bidal_jax.train import make_train
+from envs_mjx import nicol
+from envs_mjx.base import ObservationSpec
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 NOISY = dataclasses.replace(TINY, noise_segments="q")
@@ -48,7 +51,7 @@ def test_only_the_named_segments_get_noise_never_achieved_goals_or_rewards(env):
     achieved goals; the agent's q differs by noise of std κσ, its qdot not at all."""
     kappa, sigma = 0.5, np.array([0.2, 0.4], np.float32)
     state = noise.NoiseState(kappa=jnp.float32(kappa), sigma=jnp.asarray(sigma))
-    indices = noise.feature_indices(env.observation_spec.proprio_segments, ("q",))
+    noise_map = noise.noise_map(env.observation_spec, ("q",))
     actions = jax.random.uniform(jax.random.PRNGKey(1), (env.episode_length, 64, 2), minval=-1, maxval=1)
 
     def run(observe):
@@ -57,7 +60,7 @@ def test_only_the_named_segments_get_noise_never_achieved_goals_or_rewards(env):
             record=lambda step: (step.obs, step.state.obs, step.next_state.reward),
         )[1]
 
-    seen, true, reward = jax.jit(lambda: run(lambda obs, key: noise.observe(state, indices, obs, key)))()
+    seen, true, reward = jax.jit(lambda: run(lambda obs, key: noise.observe(state, noise_map, obs, key)))()
     _, clean, clean_reward = jax.jit(lambda: run(None))()
     np.testing.assert_array_equal(np.asarray(true["proprio"]), np.asarray(clean["proprio"]))
     np.testing.assert_array_equal(np.asarray(reward), np.asarray(clean_reward))
@@ -124,3 +127,53 @@ def test_kappa_zero_equals_a_run_without_noise(env, noisy_runs):
             )
     for a, b in zip(jax.tree.leaves(plain_state.params), jax.tree.leaves(noisy_state.params)):
         np.testing.assert_allclose(np.asarray(a)[0], np.asarray(b)[0], rtol=1e-5, atol=1e-7)
+
+
+NICOL_SPEC = ObservationSpec(proprio_segments=nicol.PROPRIO_SEGMENTS, goal_size=3, derived=nicol.DERIVED,
+                             goal_segment="obj_pos")
+MEASURED = ("ee_pos", "ee_rot", "obj_pos")
+
+
+def _noisy_nicol_obs(variant: str, spec: ObservationSpec = NICOL_SPEC):
+    """(true obs, what the agent sees) of 256 random NICOL observations under `variant`."""
+    key_obs, key_goal, key_noise = jax.random.split(jax.random.PRNGKey(3), 3)
+    obs = {"proprio": jax.random.normal(key_obs, (256, spec.proprio_size)),
+           "achieved_goal": jax.random.normal(key_goal, (256, 3))}
+    nmap = noise.noise_map(spec, MEASURED, variant)
+    state = noise.NoiseState(kappa=jnp.float32(1.0), sigma=jnp.linspace(0.1, 0.9, len(nmap.indices)))
+    return obs, noise.observe(state, nmap, obs, key_noise)
+
+
+def _segment(obs, name, spec=NICOL_SPEC):
+    return np.asarray(obs["proprio"][:, spec.segment_slice(name)])
+
+
+def test_obj_rel_pos_carries_the_noise_of_obj_pos_and_ee_pos():
+    """A feature derived from noisy measurements is noisy: obj_rel_pos = noisy obj_pos - noisy ee_pos."""
+    true, seen = _noisy_nicol_obs("derived")
+    delta = {n: _segment(seen, n) - _segment(true, n) for n in ("ee_pos", "obj_pos", "obj_rel_pos", "q")}
+    assert np.abs(delta["obj_pos"]).min() > 0 and np.abs(delta["ee_pos"]).min() > 0
+    np.testing.assert_allclose(delta["obj_rel_pos"], delta["obj_pos"] - delta["ee_pos"], atol=1e-5)
+    np.testing.assert_array_equal(delta["q"], 0.0)
+    np.testing.assert_array_equal(np.asarray(seen["achieved_goal"]), np.asarray(true["achieved_goal"]))
+
+
+def test_the_literal_variant_leaves_derived_features_clean_and_noisy_goal_moves_the_achieved_goal():
+    true, seen = _noisy_nicol_obs("literal")
+    np.testing.assert_array_equal(_segment(seen, "obj_rel_pos"), _segment(true, "obj_rel_pos"))
+    assert np.abs(_segment(seen, "obj_pos") - _segment(true, "obj_pos")).min() > 0
+    true, seen = _noisy_nicol_obs("noisy_goal")
+    np.testing.assert_allclose(np.asarray(seen["achieved_goal"] - true["achieved_goal"]),
+                               _segment(seen, "obj_pos") - _segment(true, "obj_pos"), atol=1e-5)
+
+
+def test_a_reduced_spec_drops_the_derived_segment_and_a_noisy_goal_needs_its_segment_noised():
+    reduced = NICOL_SPEC.without(nicol.REDUCED_DROP)
+    assert reduced.derived == () and reduced.goal_segment == "obj_pos"
+    nmap = noise.noise_map(reduced, MEASURED)
+    np.testing.assert_array_equal(nmap.spread[:, nmap.indices], np.eye(len(nmap.indices)))
+    assert np.count_nonzero(nmap.spread) == len(nmap.indices)
+    with pytest.raises(ValueError, match="noisy_goal: the achieved goal is segment 'obj_pos'"):
+        noise.noise_map(NICOL_SPEC, ("ee_pos",), "noisy_goal")
+    with pytest.raises(ValueError, match="unknown noise variant 'loud'"):
+        noise.noise_map(NICOL_SPEC, MEASURED, "loud")

@@ -83,10 +83,33 @@ def test_cube_starts_and_lift_goals_follow_the_contract(lift, lift_resets):
     np.testing.assert_allclose(cube[:, 2], nicol.TABLE_HEIGHT + nicol.CUBE_HALF, atol=2e-3)
     goal = np.asarray(lift_resets.obs["desired_goal"])
     assert np.abs(goal[:, :2] - cube[:, :2]).max() <= nicol.LIFT_GOAL_RANGE + 1e-3
+    # HER's pick-and-place goals: half on the table (where the resting cube's centre is), half 5-25 cm above it
     height = goal[:, 2] - nicol.TABLE_HEIGHT
-    assert height.min() >= nicol.LIFT_HEIGHT[0] - 1e-6 and height.max() <= nicol.LIFT_HEIGHT[1] + 1e-6
+    on_table = np.isclose(height, nicol.CUBE_HALF, atol=1e-6)
+    air = np.asarray(lift.goal_subsets(jnp.asarray(goal))["air"])
+    np.testing.assert_array_equal(air, ~on_table)
+    assert abs(air.mean() - 0.5) < 4 * np.sqrt(0.25 / len(air))
+    assert height[air].min() >= nicol.LIFT_HEIGHT[0] - 1e-6 and height[air].max() <= nicol.LIFT_HEIGHT[1] + 1e-6
+    assert abs(np.median(height[air]) - np.mean(nicol.LIFT_HEIGHT)) < 0.02  # uniform over the range
     # the goal marker sits at the goal
     np.testing.assert_allclose(np.asarray(lift_resets.data.mocap_pos[:, lift._goal_mocap]), goal, atol=1e-6)
+
+
+def test_the_never_lift_floor_is_the_success_of_the_resting_cube_under_each_goal(lift, lift_resets):
+    """A policy that slides the cube perfectly but never lifts it: success when the cube resting right under
+    the goal is within ε, i.e. every table goal and the air goals less than ε above the resting cube."""
+    goal = np.asarray(lift_resets.obs["desired_goal"])
+    resting = goal.copy()
+    resting[:, 2] = nicol.TABLE_HEIGHT + nicol.CUBE_HALF
+    slid = np.asarray(lift.compute_reward(jnp.asarray(resting), jnp.asarray(goal))) == 0.0
+    air = np.asarray(lift.goal_subsets(jnp.asarray(goal))["air"])
+    floor = lift.never_lift_success()
+    assert floor == pytest.approx({"all": 0.5625, "air": 0.125})
+    assert abs(slid[air].mean() - floor["air"]) < 4 * np.sqrt(floor["air"] * (1 - floor["air"]) / air.sum())
+    assert slid[~air].all()
+    assert NicolLift(render=False, air_goal_probability=1.0).never_lift_success()["all"] == 0.125
+    with pytest.raises(ValueError, match="air_goal_probability=1.5: must be in"):
+        NicolLift(render=False, air_goal_probability=1.5)
 
 
 def test_slide_goals_lie_on_the_table_around_the_start_region(slide, slide_resets):

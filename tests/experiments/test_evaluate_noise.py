@@ -67,8 +67,9 @@ def test_the_restored_noise_changes_only_the_noised_features(noisy):
     trained = load_policy(run_dir)
     seed_noise = jax.tree.map(lambda x: x[0], load_noise(run_dir, trained))
     env = envs_mjx.make("planar_reach", render=False)
-    indices = noise.feature_indices(env.observation_spec.proprio_segments, ("q",))
-    observe = functools.partial(noise.observe, seed_noise, indices)
+    noise_map = noise.noise_map(env.observation_spec, ("q",))
+    indices = noise_map.indices
+    observe = functools.partial(noise.observe, seed_noise, noise_map)
     _, (seen, true) = acting.rollout(env, trained.policy(0), jax.random.PRNGKey(1), 4, observe=observe,
                                      record=lambda step: (step.obs["proprio"], step.state.obs["proprio"]))
     changed = np.asarray(seen != true).any(axis=(0, 1))

@@ -1,0 +1,194 @@
+"""What does the agents' camera show? Pixels covered by each task-relevant body, by phase of the task.
+
+The image agents can only learn what their 42×42 frame shows (docs/tasks.md, "camera"). This
+probe counts, from the camera's per-ray geom ids (`Camera.geom_map`, the first geom each ray hits),
+how many output pixels each task-relevant body covers (rays on the body over rays per pixel, so a
+body seen by half the rays of 6 pixels covers 3) in the states a task passes through:
+
+- NICOL (nicol_slide, nicol_lift): the cube, the goal marker and the hand (palm, fingers, thumb),
+  over episodes of the scripted grasp controller (`experiments.probes.grasping`) and of a scripted
+  push, with Gaussian action noise. Frames are sorted into phases by the true state:
+  `start` (the first frame), `approach` (hand 5-20 cm from the cube, cube on the table),
+  `contact` (hand within 5 cm of the cube, cube on the table: a push or a grasp under way) and
+  `held` (the cube lifted off the table within 4 cm of the closed hand).
+- reaching (planar_reach, ur5_reach): the arm's links and the goal marker(s), at start states and
+  after random actions.
+
+    python -m experiments.probes.visibility --env nicol_lift [--episodes 128] [--out docs/visibility.md]
+
+Prints a markdown table (one row per phase: frames, and per body the mean pixels covered, the
+10th percentile and the share of frames where it covers at least `VISIBLE_PX` pixels) and, with
+`--out`, appends it to that file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+import envs_mjx
+from bidal_jax.config import ConfigError
+from envs_mjx.base import Env, State
+from envs_mjx.nicol import CUBE_HALF, MAX_MOVE, TABLE_HEIGHT, NicolEnv
+from experiments import cli
+from experiments.probes.grasping import HELD, grasp_policy
+
+PROG = "python -m experiments.probes.visibility"
+VISIBLE_PX = 3.0  # pixels a body must cover to count as seen
+CONTACT = 0.05  # m, hand to cube
+APPROACH = 0.20  # m
+LIFTED = 0.01  # m above resting on the table
+PUSH_BEHIND = 0.06  # m behind the cube (seen from the goal) where the push starts
+RANDOM_STEPS = 10  # random actions before a reaching frame of the `moving` phase
+SCRIPT_NOISE = 0.3  # std of the Gaussian noise on the scripted actions (spreads the states)
+
+
+def subtree_geoms(mj_model: mujoco.MjModel, body: str) -> tuple[int, ...]:
+    """Ids of the geoms of body `body` and of every body below it."""
+    root = mj_model.body(body).id
+    inside = np.zeros(mj_model.nbody, bool)
+    for b in range(mj_model.nbody):  # parents precede children in MuJoCo's body order
+        inside[b] = b == root or (b > 0 and inside[mj_model.body_parentid[b]])
+    return tuple(int(g) for g in np.nonzero(inside[mj_model.geom_bodyid])[0])
+
+
+def body_groups(env: Env) -> dict[str, tuple[int, ...]]:
+    """The task-relevant bodies of `env` as named groups of geom ids."""
+    m = env.mj_model
+    if isinstance(env, NicolEnv):
+        return {"cube": subtree_geoms(m, "cube"), "goal marker": subtree_geoms(m, "goal"),
+                "hand": subtree_geoms(m, "r_hand")}
+    names = [m.geom(g).name for g in range(m.ngeom)]
+    goals = tuple(g for g, n in enumerate(names) if n.startswith("goal") or n == "target")
+    links = [(n, (g,)) for g, n in enumerate(names) if m.geom_bodyid[g] > 0 and g not in goals]
+    return dict(links) | {"goal marker": goals}
+
+
+def coverage(env: Env, groups: dict[str, tuple[int, ...]], data) -> jax.Array:
+    """Output pixels covered by each group [len(groups)] in the frame of `data`."""
+    ids = env.camera.geom_map(env.mjx_model, data)
+    rays = jnp.stack([jnp.isin(ids, jnp.asarray(g)).sum() for g in groups.values()])
+    return rays / env.camera.supersample**2
+
+
+def push_policy(obs: dict, spec) -> jax.Array:
+    """A scripted push: go behind the cube (seen from the goal) at its height, then push it to the goal."""
+    ee, obj = obs["proprio"][spec.segment_slice("ee_pos")], obs["proprio"][spec.segment_slice("obj_pos")]
+    heading = obs["desired_goal"][:2] - obj[:2]
+    heading = heading / jnp.maximum(jnp.linalg.norm(heading), 1e-6)
+    behind = obj.at[:2].add(-PUSH_BEHIND * heading)
+    ready = jnp.linalg.norm(ee[:2] - behind[:2]) < 0.02
+    hover = behind.at[2].add(0.08)
+    target = jnp.where(ready | (ee[2] < obj[2] + 0.03), behind, hover)
+    target = jnp.where(ready, obs["desired_goal"].at[2].set(obj[2]), target)
+    move = jnp.clip((target - ee) / MAX_MOVE, -1.0, 1.0)
+    return jnp.concatenate([move, jnp.zeros(2), jnp.array([-1.0, -1.0])])
+
+
+def nicol_rollouts(env: NicolEnv, episodes: int, noise: float, key: jax.Array,
+                   record: Callable[[State], Any]) -> tuple[Any, np.ndarray]:
+    """(`record(state)` of every state [N, ...], its phase [N]: an index into `PHASES_NICOL`, or -1) over
+    `episodes` scripted episodes, grasps and pushes alternately, with Gaussian action noise of std `noise`."""
+    spec = env.observation_spec
+    policies = [lambda o: grasp_policy(o, spec), lambda o: push_policy(o, spec)]
+
+    def episode(key, scripted):
+        key_reset, key_noise = jax.random.split(key)
+
+        def step(state, key):
+            action = jax.lax.switch(scripted, policies, state.obs) + noise * jax.random.normal(key, (env.action_size,))
+            out = (record(state), state.obs["proprio"], state.info["step"])
+            return env.step(state, jnp.clip(action, -1.0, 1.0)), out
+
+        return jax.lax.scan(step, env.reset(key_reset), jax.random.split(key_noise, env.episode_length))[1]
+
+    records, proprio, step = jax.jit(jax.vmap(episode))(jax.random.split(key, episodes), jnp.arange(episodes) % 2)
+    records, proprio, step = jax.tree.map(lambda x: np.asarray(x).reshape(-1, *x.shape[2:]), (records, proprio, step))
+    return records, nicol_phase(spec, proprio, step)
+
+
+def nicol_phase(spec, proprio: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """The phase of each state (`PHASES_NICOL` index, -1 for none) from its true proprio [N, D] and step [N]."""
+    ee, obj = proprio[:, spec.segment_slice("ee_pos")], proprio[:, spec.segment_slice("obj_pos")]
+    closure = proprio[:, spec.segment_slice("q")][:, 6]
+    dist = np.linalg.norm(obj - ee, axis=-1)
+    lifted = obj[:, 2] > TABLE_HEIGHT + CUBE_HALF + LIFTED
+    phase = np.full(len(step), -1)
+    phase[(step > 0) & ~lifted & (dist >= CONTACT) & (dist < APPROACH)] = 1
+    phase[(step > 0) & ~lifted & (dist < CONTACT)] = 2
+    phase[lifted & (dist < HELD) & (closure > 1.0)] = 3
+    phase[step == 0] = 0
+    return phase
+
+
+def reach_frames(env: Env, groups, episodes: int, key: jax.Array) -> tuple[np.ndarray, np.ndarray]:
+    """(coverage, phase) at start states (phase 0) and after `RANDOM_STEPS` random actions (phase 1)."""
+
+    def frames(key):
+        key_reset, key_act = jax.random.split(key)
+        state = env.reset(key_reset)
+        start = coverage(env, groups, state.data)
+        actions = jax.random.uniform(key_act, (RANDOM_STEPS, env.action_size), minval=-1.0, maxval=1.0)
+        state, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), state, actions)
+        return jnp.stack([start, coverage(env, groups, state.data)])
+
+    cov = np.asarray(jax.jit(jax.vmap(frames))(jax.random.split(key, episodes)))
+    return cov.reshape(-1, cov.shape[-1]), np.tile([0, 1], episodes)
+
+
+PHASES_NICOL = ("start", "approach", "contact", "held")
+PHASES_REACH = ("start", "moving")
+
+
+def table(env_name: str, groups, cov: np.ndarray, phase: np.ndarray, phases: tuple[str, ...]) -> str:
+    """Markdown: per phase, frames and per group mean pixels, 10th percentile and share ≥ `VISIBLE_PX`."""
+    head = "| env | phase | frames | " + " | ".join(f"{g}: mean px, p10, ≥ {VISIBLE_PX:g} px" for g in groups) + " |"
+    lines = [head, "|" + " --- |" * (3 + len(groups))]
+    for i, name in enumerate(phases):
+        rows = cov[phase == i]
+        if not len(rows):
+            lines.append(f"| {env_name} | {name} | 0 |" + " – |" * len(groups))
+            continue
+        cells = [f"{c.mean():.1f}, {np.percentile(c, 10):.1f}, {(c >= VISIBLE_PX).mean():.2f}" for c in rows.T]
+        lines.append(f"| {env_name} | {name} | {len(rows)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def measure(env: Env, episodes: int, noise: float, seed: int = 0) -> str:
+    """The probe's table for `env`."""
+    groups = body_groups(env)
+    key = jax.random.PRNGKey(seed)
+    if isinstance(env, NicolEnv):
+        cov, phase = nicol_rollouts(env, episodes, noise, key, lambda state: coverage(env, groups, state.data))
+        return table(env.name, groups, cov, phase, PHASES_NICOL)
+    cov, phase = reach_frames(env, groups, episodes, key)
+    return table(env.name, groups, cov, phase, PHASES_REACH)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n")[0])
+    parser.add_argument("--env", required=True, choices=envs_mjx.names())
+    parser.add_argument("--episodes", type=int, default=128, help="episodes (NICOL) or start states (reaching)")
+    parser.add_argument("--noise", type=float, default=SCRIPT_NOISE,
+                        help="std of the Gaussian noise on scripted actions")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", help="markdown file to append the table to")
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        return cli.exit_code(ConfigError(f"--episodes {args.episodes}: must be at least 1"))
+    text = measure(envs_mjx.make(args.env), args.episodes, args.noise, args.seed)
+    print(text)
+    if args.out:
+        with open(args.out, "a") as f:
+            f.write(text + "\n\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

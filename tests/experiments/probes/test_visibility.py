@@ -1,0 +1,57 @@
+"""The visibility probe (experiments/probes/visibility.py) and what the NICOL camera must show (docs/tasks.md,
+"camera"): the cube stays in view where the hand is at it and where the hand holds it."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from envs_mjx import nicol
+from experiments.probes import visibility
+
+
+@pytest.fixture(scope="module")
+def lift():
+    return nicol.NicolLift()
+
+
+def _cube_pixels(env, qpos: np.ndarray) -> np.ndarray:
+    """Pixels the cube covers [N] in the frames of the poses `qpos` [N, nq] (kinematics only, no stepping)."""
+    groups = visibility.body_groups(env)
+
+    @jax.jit
+    @jax.vmap
+    def pixels(q):
+        data = mjx.kinematics(env.mjx_model, env.blank_data().replace(qpos=q))
+        return visibility.coverage(env, groups, data)[0]
+
+    assert next(iter(groups)) == "cube"
+    return np.asarray(pixels(jnp.asarray(qpos)))
+
+
+def test_the_cube_stays_in_view_under_and_in_the_hand(lift):
+    """The cube covers at least 3 px when held in the closed hand and when it sits right under the resting hand
+    (where a camera behind and above the hand sees only the hand), and at every start position."""
+    adr = lift._cube_qpos
+    home = np.asarray(lift._home_qpos)
+    rest = mjx.kinematics(lift.mjx_model, lift.blank_data().replace(qpos=jnp.asarray(home)))
+    hand = np.asarray(rest.xpos[lift._hand])
+    offsets = np.stack(np.meshgrid(*[np.linspace(-nicol.CUBE_START_RANGE, nicol.CUBE_START_RANGE, 4)] * 2), -1)
+    starts = np.repeat(home[None], 16, 0)
+    starts[:, adr:adr + 2] += offsets.reshape(-1, 2)
+    under_hand = home.copy()
+    under_hand[adr:adr + 2] = hand[:2]
+    poses = np.concatenate([np.asarray(lift._held_qpos)[None], under_hand[None], starts])
+    pixels = _cube_pixels(lift, poses)
+    assert pixels.min() >= visibility.VISIBLE_PX, pixels
+
+
+def test_the_probe_prints_a_row_per_phase_and_appends_it_to_out(tmp_path, capsys):
+    out = tmp_path / "visibility.md"
+    assert visibility.main(["--env", "planar_reach", "--episodes", "4", "--out", str(out)]) == 0
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| planar_reach")]
+    assert [row.split("|")[2].strip() for row in rows] == ["start", "moving"]
+    assert all(row.split("|")[3].strip() == "4" for row in rows)
+    assert out.read_text().count("| planar_reach") == 2
+    assert visibility.main(["--env", "planar_reach", "--episodes", "0"]) == 2
