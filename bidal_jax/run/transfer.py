@@ -51,7 +51,6 @@ from bidal_jax import agents, noise, normalizer
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, RunConfig
 from bidal_jax.run import checkpoint
 from bidal_jax.run.checkpoint import CheckpointError, leaf_name
-from bidal_jax.train import make_train
 
 Segments = Sequence[tuple[str, int]]
 
@@ -217,13 +216,12 @@ def make_initializer(
     return initialize
 
 
-def check(env, config: Config, make_env: Callable[..., Any]) -> Plan:
-    """The checks of `plan` for a run about to start (`preflight.prepare`): traces the run's init,
-    compiles nothing. Raises ConfigError when the source is the run's own directory, else as `plan`."""
+def check(config: Config, target: Any, segments: Segments, make_env: Callable[..., Any]) -> Plan:
+    """The checks of `plan` for a run about to start (`preflight.prepare`), whose abstract initial state
+    (`loop.Programs.abstract_state`) is `target`; compiles nothing. Raises ConfigError when the source is
+    the run's own directory, else as `plan`."""
     run = config.run
     source_dir = parse_init_from(run.init_from)[0]
     if os.path.realpath(source_dir) == os.path.realpath(run.run_dir):
         raise ConfigError(f"--init-from {run.init_from}: is this run's own --run-dir; the source must be another run")
-    init, _ = make_train(env, config)
-    target = jax.eval_shape(jax.vmap(init), jax.ShapeDtypeStruct((run.seeds, 2), jnp.uint32))
-    return plan(run, target, env.observation_spec.proprio_segments, make_env)
+    return plan(run, target, segments, make_env)

@@ -22,7 +22,7 @@ import envs_mjx
 from bidal_jax import normalizer
 from bidal_jax.agents import ddpg
 from bidal_jax.config import resolve
-from bidal_jax.run import checkpoint, preflight, rundir, transfer
+from bidal_jax.run import checkpoint, preflight, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 from experiments import run
@@ -174,11 +174,11 @@ def test_the_transferred_run_trains_without_the_sources_buffer_and_records_its_s
 def test_resume_keeps_the_transfer_fields_and_does_not_transfer_again(transferred, source, monkeypatch, capsys):
     run_dir, _, _ = transferred
     monkeypatch.setattr(transfer, "check", lambda *a, **k: pytest.fail("a resumed run was checked for transfer"))
-    resumed = preflight.prepare(
+    with preflight.prepare(
         {"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=True
-    ).run
+    ) as prepared:
+        resumed = prepared.config.run
     assert (resumed.init_from, resumed.init_parts) == (source[1], ",".join(PARTS))
-    rundir.release(run_dir)  # prepare locked the run directory for this process's run
     assert_refused(
         ["--resume", "--run-dir", run_dir, "--init-from", source[0], "--quiet"],
         run_dir,
