@@ -1,8 +1,8 @@
 """Acting: the policy as a function of (parameters, normalisers, observation), one rollout
 for everything that steps environments, and evaluation.
 
-- `make_policy(networks, config, params, explore=False)`: the DDPG actor μ(ψ(s), η(g))
-  (paper Eq. 7) on normalised inputs; exploring adds Gaussian noise and ε-random actions
+- `make_policy(networks, config, params, explore=False)`: the agent's policy (its family's `act`;
+  DDPG's actor μ(ψ(s), η(g)), paper Eq. 7) on normalised inputs; exploring adds Gaussian noise and ε-random actions
   (`exploring`, HER's exploration).
 - `rollout(env, policy, key, n_envs)`: `n_envs` vmapped envs stepped by `policy` for one
   episode (or `steps`) inside one `lax.scan`. Training, evaluation, the benchmark, the
@@ -30,7 +30,6 @@ from flax import struct
 
 from bidal_jax import normalizer
 from bidal_jax.config import Config
-from bidal_jax.networks import Networks
 
 Policy = Callable[[dict, Any], jax.Array]
 # what the agent observes of a state: observe(obs, key) -> obs (e.g. with sensor noise)
@@ -48,43 +47,43 @@ class Step(NamedTuple):
 
 # what a rollout records per step: record(step) -> pytree
 Recorder = Callable[[Step], Any]
-ACTING_NETWORKS = ("encoder", "actor")
 
 
 @struct.dataclass
 class ActingParams:
-    """What a policy needs: the encoder and actor parameters and the normalisers' statistics."""
+    """What a policy needs: the parameters of the networks it reads and the normalisers' statistics."""
 
     params: dict
     proprio_norm: normalizer.NormalizerState
     goal_norm: normalizer.NormalizerState
 
 
-def acting_params(state: Any) -> ActingParams:
-    """The acting part of a `TrainState` (or of any object with the same fields)."""
+def acting_params(state: Any, networks: tuple[str, ...]) -> ActingParams:
+    """The acting part of a `TrainState` (or of any object with the same fields): the parameters of
+    `networks` (the family's `acting_networks`) and the normalisers."""
     return ActingParams(
-        params={k: v for k, v in state.params.items() if k in ACTING_NETWORKS},
+        params={k: v for k, v in state.params.items() if k in networks},
         proprio_norm=state.proprio_norm,
         goal_norm=state.goal_norm,
     )
 
 
-def make_policy(networks: Networks, config: Config, params: ActingParams, explore: bool = False) -> Policy:
-    """The policy μ(ψ(s), η(g)) of `params` (paper Eq. 7), on batched observations.
+def make_policy(networks: Any, config: Config, params: ActingParams, explore: bool = False) -> Policy:
+    """The policy of `params` (the family's `act`; DDPG's μ(ψ(s), η(g)), paper Eq. 7) with the agent's
+    `networks`, on batched observations.
 
     Proprio and goals are normalised (clipped to ±`train.clip_obs`) as in training. With
     `explore`, actions get Gaussian noise of std `noise_eps` (then clipped to [-1, 1]) and
     are replaced by uniform random actions with probability `random_eps` (HER's exploration);
     the policy's input `x` must then be a PRNG key.
     """
-    uses_image, train = config.agent.uses_image, config.train
+    agent, train = config.agent, config.train
 
     def act(obs: dict, x: Any) -> jax.Array:
-        image = obs["image"] if uses_image else None
+        image = obs["image"] if agent.uses_image else None
         proprio = normalizer.normalize(params.proprio_norm, obs["proprio"], train.clip_obs)
         goal = normalizer.normalize(params.goal_norm, obs["desired_goal"], train.clip_obs)
-        phi = networks.encode(params.params.get("encoder"), image, proprio)
-        action = networks.actor(params.params["actor"], phi, goal)
+        action = agent.family.act(networks, params.params, image, proprio, goal)
         return exploring(action, x, train.noise_eps, train.random_eps) if explore else action
 
     return act

@@ -12,6 +12,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
+from bidal_jax.agents import AGENTS, Agent, get
+from bidal_jax.networks import parse_strides
+
 
 class ConfigError(ValueError):
     """A config value that a run cannot use; the message is one line."""
@@ -63,30 +66,6 @@ def doc(default: Any, help: str, rule: Rule) -> Any:  # noqa: A002 - "help" read
 
 
 @dataclasses.dataclass(frozen=True)
-class AgentSpec:
-    """What an agent observes and whether it learns the BidAL forward/inverse models."""
-
-    uses_image: bool
-    uses_proprio: bool
-    bidal: bool
-
-
-AGENTS: dict[str, AgentSpec] = {
-    "proprio_baseline": AgentSpec(uses_image=False, uses_proprio=True, bidal=False),
-    "visual_baseline": AgentSpec(uses_image=True, uses_proprio=False, bidal=False),
-    "multimodal_baseline": AgentSpec(uses_image=True, uses_proprio=True, bidal=False),
-    "visual_bidal": AgentSpec(uses_image=True, uses_proprio=False, bidal=True),
-    "multimodal_bidal": AgentSpec(uses_image=True, uses_proprio=True, bidal=True),
-}
-
-
-def agent_spec(name: str) -> AgentSpec:
-    if name not in AGENTS:
-        raise ValueError(f"unknown agent {name!r}; valid agents: {', '.join(AGENTS)}")
-    return AGENTS[name]
-
-
-@dataclasses.dataclass(frozen=True)
 class NetworkConfig:
     """Sizes of the networks (paper Sec. III-B and III-C)."""
 
@@ -111,15 +90,6 @@ class NetworkConfig:
     hidden_size: int = doc(128, "width of the actor's and critic's hidden layers", POSITIVE_INT)
     hidden_layers: int = doc(2, "number of hidden layers of the actor and the critic", POSITIVE_INT)
     model_hidden_size: int = doc(128, "hidden width of the forward model f and inverse model g", POSITIVE_INT)
-
-
-def parse_strides(text: str) -> tuple[int, ...]:
-    """`NetworkConfig.conv_strides` as integers: "3,2,2,2" -> (3, 2, 2, 2); ValueError if it is not
-    four positive integers."""
-    strides = tuple(int(part) for part in text.split(","))
-    if len(strides) != 4 or min(strides) < 1:
-        raise ValueError(f"{text!r}: not four positive integers")
-    return strides
 
 
 @dataclasses.dataclass(frozen=True)
@@ -289,9 +259,10 @@ class Config:
     network: NetworkConfig = NetworkConfig()
 
     @property
-    def agent(self) -> AgentSpec:
-        """What the agent `run.agent` observes and learns; ValueError for an unknown name."""
-        return agent_spec(self.run.agent)
+    def agent(self) -> Agent:
+        """The agent `run.agent` (`bidal_jax.agents`): its algorithm family and what it observes; ValueError for
+        an unknown name."""
+        return get(self.run.agent)
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         """The configs as JSON-ready {"run": {...}, "train": {...}, "network": {...}}."""

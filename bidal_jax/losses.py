@@ -23,7 +23,6 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from bidal_jax.config import TrainConfig
 from bidal_jax.networks import Networks
 
 MIN_EXTRINSIC_REWARD = -1.0  # the sparse r_e ∈ {-1, 0} (Eq. 6)
@@ -65,15 +64,18 @@ def half_squared_error(pred: jax.Array, target: jax.Array) -> jax.Array:
 
 @dataclasses.dataclass(frozen=True)
 class Losses:
-    """`representation(params, target_params, batch) -> (loss, aux)` trains encoder, critic,
-    forward and inverse models; `actor(actor_params, params, batch) -> (loss, aux)` trains
-    the actor on `batch["phi"]` (the stopped φ(s) from the representation step)."""
+    """The losses of one update's two steps (`bidal_jax.agents.ddpg`), each `loss(trained, params, target_params,
+    batch) -> (loss, aux)` (`agents.family.Loss`): `representation` trains the encoder, critic, forward and
+    inverse models (`trained`, a dict of their subtrees) and returns the stopped φ(s) as aux "phi"; `actor` trains
+    the actor (`trained`, its subtree) on `batch["phi"]`, with the critic of `params`."""
 
     representation: Callable
     actor: Callable
 
 
-def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
+def make_losses(networks: Networks, config, bidal: bool) -> Losses:
+    """The losses of `networks` with the learner's `config` (a `TrainConfig`); `bidal`: with the forward and
+    inverse models and the intrinsic reward."""
     r_min = min_reward(config.intrinsic_lambda if bidal else 0.0, networks.latent_size)
 
     def encode_pair(enc_params, batch):
@@ -84,7 +86,7 @@ def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
         phis = networks.encode(enc_params, images, jnp.concatenate([batch["proprio"], batch["next_proprio"]]))
         return jnp.split(phis, 2)
 
-    def representation(params, target_params, batch):
+    def representation(params, _, target_params, batch):
         chex.assert_rank([batch["proprio"], batch["goal"], batch["action"]], 2)
         chex.assert_rank(batch["reward"], 1)
         phi, next_phi = encode_pair(params.get("encoder"), batch)
@@ -112,7 +114,7 @@ def make_losses(networks: Networks, config: TrainConfig, bidal: bool) -> Losses:
                    phi=jax.lax.stop_gradient(phi))
         return loss + critic_loss, aux
 
-    def actor(actor_params, params, batch):
+    def actor(actor_params, params, _, batch):
         phi, goal = batch["phi"], batch["goal"]
         chex.assert_rank([phi, goal], 2)
         action = networks.actor(actor_params, phi, goal)

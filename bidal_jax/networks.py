@@ -8,20 +8,29 @@
 - `ForwardModel` f(φ(s), a) → φ̂(s') (Eq. 2) and `InverseModel` g(φ(s), φ(s')) → â (Eq. 5),
   two dense layers each.
 
-`make_networks` builds the set an agent needs and returns pure init/apply functions.
+`make_networks` builds the set an agent of the DDPG family needs (`bidal_jax.agents.ddpg`) and returns pure
+init/apply functions. The modules take a `config.NetworkConfig` (this module imports no config: the config
+imports the agents, which build these networks).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Any, Callable
 
 import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from bidal_jax.config import AgentSpec, NetworkConfig, parse_strides
+
+def parse_strides(text: str) -> tuple[int, ...]:
+    """`NetworkConfig.conv_strides` as integers: "3,2,2,2" -> (3, 2, 2, 2); ValueError if it is not
+    four positive integers."""
+    strides = tuple(int(part) for part in text.split(","))
+    if len(strides) != 4 or min(strides) < 1:
+        raise ValueError(f"{text!r}: not four positive integers")
+    return strides
 
 
 class PatchConv(nn.Module):
@@ -99,7 +108,7 @@ PROPRIO_LAYER = "proprio"  # the encoder's proprio branch: its kernel's rows are
 class Encoder(nn.Module):
     """φ(s): the multimodal (or visual-only) encoder, paper Eq. 1."""
 
-    config: NetworkConfig
+    config: Any  # NetworkConfig
     uses_proprio: bool
 
     @nn.compact
@@ -126,7 +135,7 @@ ACTION_LAYER = "action"  # the actor's output layer: its bias has the action siz
 class Actor(nn.Module):
     """μ(ψ(s), η(g)) ∈ [-1, 1]^A with UVFA embeddings of state and goal."""
 
-    config: NetworkConfig
+    config: Any  # NetworkConfig
     action_size: int
 
     @nn.compact
@@ -142,7 +151,7 @@ class Actor(nn.Module):
 class Critic(nn.Module):
     """Q(ψ(s), a, η(g)) with UVFA embeddings of state and goal."""
 
-    config: NetworkConfig
+    config: Any  # NetworkConfig
 
     @nn.compact
     def __call__(self, phi: jax.Array, action: jax.Array, goal: jax.Array) -> jax.Array:
@@ -157,7 +166,7 @@ class Critic(nn.Module):
 class ForwardModel(nn.Module):
     """f(φ(s), a) → φ̂(s'), two dense layers (paper Eq. 2)."""
 
-    config: NetworkConfig
+    config: Any  # NetworkConfig
 
     @nn.compact
     def __call__(self, phi: jax.Array, action: jax.Array) -> jax.Array:
@@ -169,7 +178,7 @@ class ForwardModel(nn.Module):
 class InverseModel(nn.Module):
     """g(φ(s), φ(s')) → â ∈ [-1, 1]^A, two dense layers (paper Eq. 5)."""
 
-    config: NetworkConfig
+    config: Any  # NetworkConfig
     action_size: int
 
     @nn.compact
@@ -197,14 +206,16 @@ class Networks:
 
 
 def make_networks(
-    spec: AgentSpec, config: NetworkConfig, proprio_size: int, goal_size: int, action_size: int, image_shape
+    config: Any, proprio_size: int, goal_size: int, action_size: int, image_shape, *, uses_image: bool,
+    uses_proprio: bool, models: bool,
 ) -> Networks:
-    """Build the networks agent `spec` needs; `init(key)` returns a dict of param subtrees."""
+    """The actor and critic, an encoder for an agent that `uses_image` (reading proprio too if `uses_proprio`)
+    and, with `models`, the forward and inverse models; `init(key)` returns a dict of param subtrees."""
     actor, critic = Actor(config, action_size), Critic(config)
-    latent = config.latent_size if spec.uses_image else proprio_size
-    encoder = Encoder(config, spec.uses_proprio) if spec.uses_image else None
-    fwd = ForwardModel(config) if spec.bidal else None
-    inv = InverseModel(config, action_size) if spec.bidal else None
+    latent = config.latent_size if uses_image else proprio_size
+    encoder = Encoder(config, uses_proprio) if uses_image else None
+    fwd = ForwardModel(config) if models else None
+    inv = InverseModel(config, action_size) if models else None
 
     def init(key: jax.Array) -> dict:
         keys = dict(zip(("encoder", "actor", "critic", "forward", "inverse"), jax.random.split(key, 5)))
@@ -217,7 +228,7 @@ def make_networks(
         if encoder is not None:
             image = jnp.zeros((1, *image_shape), jnp.uint8)
             params["encoder"] = encoder.init(keys["encoder"], image, jnp.zeros((1, proprio_size)))
-        if spec.bidal:
+        if models:
             params["forward"] = fwd.init(keys["forward"], phi, action)
             params["inverse"] = inv.init(keys["inverse"], phi, phi)
         return params

@@ -3,8 +3,9 @@
 `epoch` is ONE jit-able function: a `lax.scan` over cycles of (vectorised rollout of all
 parallel envs with exploration, buffer insert, normaliser update, n gradient updates,
 target update after every gradient step), then deterministic evaluation rollouts. Both
-rollouts are `acting.rollout` with `acting.make_policy`. The losses are `losses.py`'s
-(paper Eqs. 3-5, 7, 8); HER relabels with the `future` strategy inside `replay.sample`.
+rollouts are `acting.rollout` with `acting.make_policy`. The agent's family (`bidal_jax.agents`)
+declares the networks, the losses and the order of an update's steps; DDPG + BidAL's are
+`losses.py`'s (paper Eqs. 3-5, 7, 8). HER relabels with the `future` strategy inside `replay.sample`.
 
 Seeds are a `vmap` over `init`/`epoch`, and env shards a `shard_map` over the mesh axis
 `ENV_AXIS`; both are laid out on devices by the run machinery (`bidal_jax.run.devices`).
@@ -25,12 +26,8 @@ from flax import struct
 
 from bidal_jax import acting, noise, normalizer, replay
 from bidal_jax.config import Config, ConfigError
-from bidal_jax.losses import make_losses
-from bidal_jax.networks import make_networks
 
 SEED_AXIS, ENV_AXIS = "seeds", "envs"  # the device mesh's axes (`bidal_jax.run.devices`)
-# the networks that the representation loss trains (the critic, encoder, forward and inverse models)
-REPRESENTATION = ("encoder", "critic", "forward", "inverse")
 
 
 @struct.dataclass
@@ -83,11 +80,6 @@ def polyak(target: Any, online: Any, tau: float) -> Any:
 def her_probability(her_k: int) -> float:
     """HER's `future` ratio k as the probability of relabelling a goal: 1 - 1/(1+k)."""
     return 1.0 - 1.0 / (1.0 + her_k)
-
-
-def representation(params: dict) -> dict:
-    """The parameters that the representation loss trains (`REPRESENTATION`)."""
-    return {k: v for k, v in params.items() if k in REPRESENTATION}
 
 
 def episode_template(env, uses_image: bool, n_noisy: int) -> dict:
@@ -151,10 +143,9 @@ def make_train(env, config: Config, env_shards: int = 1):
     with other random draws. What the env must offer is checked before (`run.validate`).
     """
     train, agent, spec = config.train, config.agent, env.observation_spec
-    sizes = (spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)
-    networks = make_networks(agent, config.network, *sizes)
-    losses = make_losses(networks, train, agent.bidal)
-    rep_opt, actor_opt = optimizer(train.critic_lr, train.grad_clip), optimizer(train.actor_lr, train.grad_clip)
+    networks = agent.networks(config.network, spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)
+    losses, steps = agent.family.make_losses(networks, train), agent.family.update_order
+    optimizers = {step.name: optimizer(step.learning_rate(train), train.grad_clip) for step in steps}
     future_p = her_probability(train.her_k)
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
     noise_map = noise.noise_map(spec, noise.parse_segments(train.noise_segments), train.noise_variant)
@@ -166,7 +157,7 @@ def make_train(env, config: Config, env_shards: int = 1):
     n_envs, n_eval, n_batch = (n // env_shards for n in (train.num_envs, train.eval_envs, train.batch_size))
 
     def policy(ts: TrainState, explore: bool) -> acting.Policy:
-        return acting.make_policy(networks, config, acting.acting_params(ts), explore)
+        return acting.make_policy(networks, config, acting.acting_params(ts, agent.family.acting_networks), explore)
 
     def observer(ts: TrainState) -> acting.Observer | None:
         """What the agent sees of an observation: with noise on the `noisy` features, if any."""
@@ -192,8 +183,7 @@ def make_train(env, config: Config, env_shards: int = 1):
         return TrainState(
             params=params,
             target_params=params,
-            opt_state={"representation": rep_opt.init(representation(params)),
-                       "actor": actor_opt.init(params["actor"])},
+            opt_state={step.name: optimizers[step.name].init(step.trained(params)) for step in steps},
             proprio_norm=normalizer.init(spec.proprio_size),
             goal_norm=normalizer.init(spec.goal_size),
             buffer=replay.init(train.buffer_episodes // env_shards, episode),
@@ -206,25 +196,26 @@ def make_train(env, config: Config, env_shards: int = 1):
         )
 
     def update(ts: TrainState, key: jax.Array):
-        """One gradient step of the representation group (encoder, critic, f, g), then of the actor."""
+        """One gradient step of each of the family's `update_order` steps (DDPG + BidAL: the representation
+        group, encoder, critic, f and g, then the actor), each on the parameters the earlier ones left."""
         batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
         batch = normalized_batch(batch, ts, train.clip_obs)
-        rp = representation(ts.params)
-        grads, aux = jax.grad(losses.representation, has_aux=True)(rp, ts.target_params, batch)
-        updates, rep_state = rep_opt.update(shards.average(grads), ts.opt_state["representation"], rp)
-        params = {**ts.params, **optax.apply_updates(rp, updates)}
-        actor_batch = {**batch, "phi": aux.pop("phi")}
-        actor_grads, actor_aux = jax.grad(losses.actor, has_aux=True)(params["actor"], params, actor_batch)
-        actor_grads = shards.average(actor_grads)
-        actor_updates, actor_state = actor_opt.update(actor_grads, ts.opt_state["actor"], params["actor"])
-        params["actor"] = optax.apply_updates(params["actor"], actor_updates)
+        params, opt_state, metrics = ts.params, {}, {}
+        for step in steps:
+            trained = step.trained(params)
+            grads, aux = jax.grad(losses[step.name], has_aux=True)(trained, params, ts.target_params, batch)
+            updates, opt_state[step.name] = optimizers[step.name].update(
+                shards.average(grads), ts.opt_state[step.name], trained)
+            params = step.merged(params, optax.apply_updates(trained, updates))
+            batch = {**batch, **{name: aux.pop(name) for name in step.passes}}
+            metrics.update(aux)
         ts = ts.replace(
             params=params,
             target_params=polyak(ts.target_params, params, train.tau),
-            opt_state={"representation": rep_state, "actor": actor_state},
+            opt_state=opt_state,
             updates=ts.updates + 1,
         )
-        return ts, {**aux, **actor_aux}
+        return ts, metrics
 
     def cycle(ts: TrainState, _):
         """Collect, insert, update the normalisers, then `updates_per_cycle` gradient steps."""

@@ -2,9 +2,9 @@
 
 - `run_parser()`: `python -m experiments.run`'s options, one per config field (their help is
   the field's documentation); the paper experiments pass their extra options through it.
-- `start_run(given, ...)`: the one sequence that starts a run: prepare (every check,
-  nothing written), delete the run directory when asked, build the env, restore another
-  run's parameters when `init_from` asks, train.
+- `start_run(given, ...)`: the one sequence that starts a run: prepare (every check, the env
+  and the programs built once, the run directory locked and, when asked, emptied), restore
+  another run's parameters when `init_from` asks, train.
 - `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
   its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run directory
   in use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed); 130 and 143
@@ -101,23 +101,20 @@ def start_run(
     given: dict[str, Any], *, resume: bool = False, overwrite: bool = False, quiet: bool = False, env: Any = None,
     initialize: Callable[[Any], Any] | None = None, fresh_buffer: bool = False,
 ) -> tuple[Config, dict[str, float]]:
-    """Prepare the run `given` asks for (every check, nothing written), delete its directory with
-    `overwrite`, then train it: (its config, its last metrics row). `env` defaults to one made for
+    """Prepare the run `given` asks for (every check; its directory locked, and emptied with
+    `overwrite`), then train it: (its config, its last metrics row). `env` defaults to one made for
     the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for;
     `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
     (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile.
     Raises what `FAILURES` names."""
     loop.enable_compilation_cache()  # before anything compiles: JAX reads the setting at its first compile
-    config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
-                               overwrite=overwrite, fresh_buffer=fresh_buffer)
-    if overwrite:
-        preflight.delete_run_dir(config.run.run_dir)
-    if env is None:
-        env = envs_mjx.make(config.run.env, render=config.agent.uses_image)
-    if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
-        initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)
-    return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize,
-                              fresh_buffer=fresh_buffer)
+    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
+                           overwrite=overwrite, fresh_buffer=fresh_buffer, env=env) as prepared:
+        config, env = prepared.config, prepared.env
+        if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
+            initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)
+        return config, loop.train(env, config, quiet=quiet, resume=resume, initialize=initialize,
+                                  fresh_buffer=fresh_buffer, programs=prepared.programs)
 
 
 def print_summary(run: RunConfig, row: dict[str, float]) -> None:

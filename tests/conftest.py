@@ -1,6 +1,7 @@
 """Test configuration: JAX's persistent compilation cache, so that reruns skip compiles, and the
 fixtures that several test modules share."""
 
+import contextlib
 import csv
 import json
 import os
@@ -70,13 +71,16 @@ def fake_run():
 def no_nicol(monkeypatch):
     """Envs that only tell their episode length and physics (`TODAY`), and a record of the runs prepared and
     trained."""
-    calls = []
+    calls, delete_run_dir = [], preflight.delete_run_dir
     monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(
         episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=()), physics_id=TODAY))
 
-    def prepare(given, resume, overwrite, **kwargs):
+    @contextlib.contextmanager
+    def prepare(given, resume, overwrite, env=None, **kwargs):
         calls.append(("prepare", given["run_dir"], resume, overwrite))
-        return resolve(given)
+        if overwrite:
+            delete_run_dir(given["run_dir"])
+        yield preflight.Prepared(resolve(given), env or envs_mjx.make(given["env"]), None)
 
     def train(env, config, *, resume, initialize, **kwargs):
         # a run without a checkpoint was emptied first (but for its lock, which a real prepare took)

@@ -1,13 +1,13 @@
 """The training loop that every command line and experiment calls.
 
-    config = preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make)
-    row = loop.train(envs_mjx.make(config.run.env, render=config.agent.uses_image), config)
+    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
+        row = loop.train(prepared.env, prepared.config, programs=prepared.programs)
 
 `train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
 (metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
 `checkpoint`), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
-non-finite metric or parameter stops the run without saving it; `guard`), holding the run
-directory's lock (`rundir`) throughout. A run resumed with `fresh_buffer` restores all but the
+non-finite metric or parameter stops the run without saving it; `guard`), inside the run
+directory's lock that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the
 replay buffer, which starts empty; config.json's "fresh_buffer_epochs" records after which epochs.
 Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
 `Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk).
@@ -22,6 +22,7 @@ import time
 from typing import Any, Callable, NamedTuple
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
@@ -38,35 +39,45 @@ def _log(message: str) -> None:
 
 
 class Programs(NamedTuple):
-    """A run's jitted programs and where they run (`devices.device_layout`)."""
+    """A run's jitted programs and where they run (`devices.device_layout`); built once per run (`make_programs`)."""
 
     init: Callable
     epoch: Callable
-    keys: jax.Array  # the seeds' keys
     sharding: Any  # where the training state lives (for jax.device_put)
     devices: list
     shards: int  # env shards per seed
+    seed: int  # the first seed's
+    seeds: int
+
+    def keys(self) -> jax.Array:
+        """The seeds' keys."""
+        return jax.random.split(jax.random.PRNGKey(self.seed), self.seeds)
+
+    def abstract_state(self) -> Any:
+        """The shapes and dtypes of the seeds' whole training state, from `jax.eval_shape` of `init`: nothing is
+        allocated or compiled (the memory and disk checks, a transfer's plan, a restore)."""
+        return jax.eval_shape(self.init, jax.ShapeDtypeStruct((self.seeds, 2), jnp.uint32))
 
 
-def _programs(env, config: Config) -> Programs:
+def make_programs(env, config: Config) -> Programs:
+    """The programs of the run `config` on `env`: laid out on devices, traced and compiled only when called."""
     run = config.run
     devices, shards = device_layout(run.seeds, config.train, run.env_shards)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
-    keys = jax.random.split(jax.random.PRNGKey(run.seed), run.seeds)
-    return Programs(init, epoch, keys, seed_sharding(devices, shards), devices, shards)
+    return Programs(init, epoch, seed_sharding(devices, shards), devices, shards, run.seed, run.seeds)
 
 
 def restore_state(env, config: Config, step: int | None = None):
     """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default),
     placed on this process's devices (whatever device count wrote it); compiles nothing."""
-    return _restore(config.run.run_dir, _programs(env, config), step)
+    return _restore(config.run.run_dir, make_programs(env, config), step)
 
 
 def _restore(run_dir: str, programs: Programs, step: int | None = None, fresh_buffer: bool = False):
     """(state, epoch) of a checkpoint, placed like the program's; with `fresh_buffer`, the buffer is the empty one
     of the program's `init` (its seeds' and env shards' layout) and the checkpoint's is not read."""
-    abstract = jax.eval_shape(programs.init, programs.keys)
-    empty = programs.init(programs.keys).buffer if fresh_buffer else None
+    abstract = programs.abstract_state()
+    empty = programs.init(programs.keys()).buffer if fresh_buffer else None
     state, _, step = checkpoint.restore(
         os.path.join(run_dir, "checkpoints"), abstract, step, programs.shards, buffer=empty
     )
@@ -75,7 +86,7 @@ def _restore(run_dir: str, programs: Programs, step: int | None = None, fresh_bu
 
 def build(
     env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None,
-    fresh_buffer: bool = False,
+    fresh_buffer: bool = False, built: Programs | None = None,
 ):
     """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's
     (with `fresh_buffer`, all of it but the replay buffer, which starts empty); writes nothing.
@@ -83,8 +94,9 @@ def build(
     `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
     from another run for transfer); a resumed run continues its checkpoint as it is.
     Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
+    `built`: the run's programs (`preflight.prepare` built them), else built here.
     """
-    run, programs = config.run, _programs(env, config)
+    run, programs = config.run, built or make_programs(env, config)
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
     log(
@@ -96,7 +108,7 @@ def build(
         if fresh_buffer:
             log(f"resuming epoch {step} with an empty replay buffer (--fresh-buffer: the checkpoint's is not restored)")
     else:
-        state, step = programs.init(programs.keys), 0
+        state, step = programs.init(programs.keys()), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
             state = jax.device_put(initialize(state), programs.sharding)
     compiled = programs.epoch.lower(state).compile()
@@ -106,15 +118,16 @@ def build(
 
 def train(
     env, config: Config, *, quiet: bool = False, resume: bool = False, initialize: Callable | None = None,
-    fresh_buffer: bool = False,
+    fresh_buffer: bool = False, programs: Programs | None = None,
 ) -> dict[str, float]:
     """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`; with
     `fresh_buffer` too, an empty replay buffer instead of the checkpoint's); returns
     the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
-    edits a new run's initial state (see `build`).
+    edits a new run's initial state (see `build`); `programs` are the run's (`preflight.prepare` built them;
+    else built here).
 
-    Holds the run directory's lock (`preflight.prepare` took it; taken here if not) until it returns
-    or raises. Raises CheckpointError (before writing anything) when the checkpoint cannot be
+    Runs inside the run directory's lock (`preflight.prepare`'s, which holds it until the run ends).
+    Raises CheckpointError (before writing anything) when the checkpoint cannot be
     restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
     SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
     checkpoint is deleted: the last good one is what a resumed run continues).
@@ -124,14 +137,7 @@ def train(
     bar by process 0 only; a signal to any process stops all after the same epoch.
     """
     begun = time.time()  # the clock of wall_time_with_compile
-    main, run_dir = multihost.is_main(), config.run.run_dir
-    if main:
-        rundir.hold(run_dir)
-    try:
-        return _train(env, config, quiet, resume, initialize, begun, fresh_buffer)
-    finally:
-        if main:
-            rundir.release(run_dir)
+    return _train(env, config, quiet, resume, initialize, begun, fresh_buffer, programs)
 
 
 def _recorded(run_dir: str, key: str, resume: bool) -> list:
@@ -172,14 +178,16 @@ def _last_good(saved: int | None, ckpt_dir: str) -> str:
 
 
 def _train(
-    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float, fresh_buffer: bool
+    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float, fresh_buffer: bool,
+    programs: Programs | None,
 ) -> dict[str, float]:
-    """`train`'s loop, the lock held; `begun`: when `train` was called."""
+    """`train`'s loop; `begun`: when `train` was called."""
     run = config.run
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
-        epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize, fresh_buffer=fresh_buffer)
+        epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize,
+                                                  fresh_buffer=fresh_buffer, built=programs)
         cfg = {
             **config.to_dict(),
             "physics": history_record(run.run_dir, "physics", env.physics_id, resume),

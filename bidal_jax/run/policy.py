@@ -1,9 +1,10 @@
 """A trained policy, loaded from a run's checkpoint: `load_policy(run_dir, checkpoint=None)`.
 
-Only what acting needs is read, with Orbax partial restore: the encoder and actor
-parameters, the normalisers and the evaluation key. The replay buffer, optimiser states and
-target networks are not, so a checkpoint whose buffer files were deleted still loads
-(`python -m experiments.evaluate` is its command line). `load_noise` restores, for a run trained
+Only what acting needs is read, with Orbax partial restore: the parameters of the networks the
+agent's family acts with (`Family.acting_networks`; DDPG: the encoder and the actor), the
+normalisers and the evaluation key. The replay buffer, optimiser states and target networks are
+not, so a checkpoint whose buffer files were deleted still loads (`python -m experiments.evaluate`
+is its command line). `load_noise` restores, for a run trained
 with observation noise, the κ and σ its checkpoint's evaluation saw (paper Eq. 9), and `evaluate_seeds`
 runs every seed's deterministic policy, under that noise or another.
 """
@@ -13,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+from typing import Any
 
 import chex
 import jax
@@ -20,9 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bidal_jax import noise, normalizer
-from bidal_jax.acting import ACTING_NETWORKS, ActingParams, Policy, evaluate, make_policy
+from bidal_jax.acting import ActingParams, Policy, evaluate, make_policy
 from bidal_jax.config import Config
-from bidal_jax.networks import ACTION_LAYER, Networks, make_networks
 from bidal_jax.run import checkpoint
 
 # the part of a training state that acting needs (all that `load_policy` reads)
@@ -39,7 +40,7 @@ class TrainedPolicy:
     """
 
     config: Config
-    networks: Networks
+    networks: Any  # the agent's (`Agent.networks`)
     params: ActingParams
     eval_key: jax.Array
     step: int
@@ -55,13 +56,14 @@ class TrainedPolicy:
         return make_policy(self.networks, self.config, self.seed_params(seed), explore)
 
 
-def _sizes(state: dict) -> dict:
+def _sizes(state: dict, action_leaf: tuple[str, ...]) -> dict:
     """The env facts that applying the networks needs, from a checkpoint's array metadata (no
-    array is read); the image shape only matters to `init`, which acting never calls."""
+    array is read; the action size from the family's `action_leaf`); the image shape only matters
+    to `init`, which acting never calls."""
     return {
         "proprio_size": int(state["proprio_norm"]["mean"].shape[-1]),
         "goal_size": int(state["goal_norm"]["mean"].shape[-1]),
-        "action_size": int(state["params"]["actor"]["params"][ACTION_LAYER]["bias"].shape[-1]),
+        "action_size": int(functools.reduce(lambda tree, key: tree[key], action_leaf, state["params"]).shape[-1]),
         "image_shape": None,
     }
 
@@ -75,9 +77,10 @@ def load_policy(run_dir: str, checkpoint_step: int | str | None = None) -> Train
     step = checkpoint.resolve_step(directory, checkpoint_step)
     config = Config.from_dict(checkpoint.read_config(directory, step), f"checkpoint {step} in {directory}")
     saved = checkpoint.read_metadata(directory, step, ("state",))["state"]
-    networks = make_networks(config.agent, config.network, **_sizes(saved))
+    family = config.agent.family
+    networks = config.agent.networks(config.network, **_sizes(saved, family.action_leaf))
     wanted = {name: saved[name] for name in ACTING_FIELDS}
-    wanted["params"] = {k: v for k, v in saved["params"].items() if k in ACTING_NETWORKS}
+    wanted["params"] = {k: v for k, v in saved["params"].items() if k in family.acting_networks}
     restored = checkpoint.restore_partial(directory, step, wanted)
     params = ActingParams(
         params=restored["params"],

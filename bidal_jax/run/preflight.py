@@ -1,33 +1,34 @@
-"""Preparing a run: every check before anything is compiled or written.
+"""Preparing a run: every check before anything is compiled or written, and the run directory's lock.
 
-    config = prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make)
+    with prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
+        row = loop.train(prepared.env, prepared.config, programs=prepared.programs)
 
 `prepare` checks the config (`validate.check`), the run directory (a new run never mixes into
 an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
-config, what the env must offer, whether the training state fits in the device's memory and one
-checkpoint of it on the disk and, for a transfer, the source run; then it locks the run directory
-(`rundir.hold`, process 0), which `loop.train` releases when it ends: a second run, resumed run or
-experiment on it is refused. Errors are one line each: `ConfigError` (`rundir.RunDirInUse` among
-them), `CheckpointError`, `rundir.DiskError` (no space for one checkpoint).
+config; it builds the env and the run's programs once (`loop.make_programs`), checks what the env
+must offer, whether the training state (`jax.eval_shape` of those programs) fits in the device's
+memory and one checkpoint of it on the disk and, for a transfer, the source run; then it locks the
+run directory (`rundir.hold`, process 0), deletes it with `overwrite`, and holds the lock until the
+`with` block ends: a second run, resumed run or experiment on it is refused. Errors are one line
+each: `ConfigError` (`rundir.RunDirInUse` among them), `CheckpointError`, `rundir.DiskError` (no
+space for one checkpoint).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
 import shutil
 import time
-from typing import Any, Callable, Iterable
+from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 import jax
-import jax.numpy as jnp
 
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
-from bidal_jax.run import multihost, rundir, transfer, validate
+from bidal_jax.run import loop, multihost, rundir, transfer, validate
 from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, read_metadata
-from bidal_jax.run.devices import device_layout
-from bidal_jax.train import make_train
 
 # fields whose value on resume may differ from the checkpoint's: the budget, the place, and how the convs are
 # computed (the same function and parameters, `NetworkConfig.conv_impl`)
@@ -38,6 +39,16 @@ RUN_FILES = frozenset(
 )
 # share of the device's memory the training state may take (the rest: activations, copies)
 MEMORY_SHARE = 0.9
+
+
+class Prepared(NamedTuple):
+    """A run that passed every check: its config, its env and its programs, each built once."""
+
+    config: Config
+    env: Any
+    programs: loop.Programs
+
+
 def _config_differences(saved: dict, other: dict) -> list[tuple[str, str, object, object]]:
     """(group, field, saved value, other value) for each field that differs, but for those that may change."""
     return [
@@ -115,14 +126,6 @@ def check_run_dir(run_dir: str, overwrite: bool) -> None:
         )
 
 
-def state_bytes(env, config: Config) -> int:
-    """Bytes of the seeds' whole training state (replay buffer included), from `jax.eval_shape`: nothing is
-    allocated."""
-    init, _ = make_train(env, config)
-    keys = jax.ShapeDtypeStruct((config.run.seeds, 2), jnp.uint32)
-    return rundir.tree_bytes(jax.eval_shape(jax.vmap(init), keys))
-
-
 def device_memory() -> int:
     """Bytes of memory of this process's first device: the accelerator's limit, or the host's RAM on a CPU."""
     stats = jax.local_devices()[0].memory_stats() or {}
@@ -142,6 +145,7 @@ def check_memory(needed: int, available: int, seeds: int) -> None:
         )
 
 
+@contextlib.contextmanager
 def prepare(
     given: dict[str, Any],
     *,
@@ -150,13 +154,16 @@ def prepare(
     resume: bool = False,
     overwrite: bool = False,
     fresh_buffer: bool = False,
-) -> Config:
-    """The config of the run that `given` (field -> value, e.g. a command line) asks for, after
-    every check; compiles and writes nothing. Raises ConfigError or CheckpointError (a resumed
-    run's checkpoint without its replay buffer, unless `fresh_buffer` starts an empty one).
+    env: Any = None,
+) -> Iterator[Prepared]:
+    """The run that `given` (field -> value, e.g. a command line) asks for, after every check, with the
+    run directory locked (and emptied with `overwrite`) until the block ends; compiles nothing. `env`:
+    the run's env if built already, else `make_env(name, render=...)` builds it. Raises ConfigError or
+    CheckpointError (a resumed run's checkpoint without its replay buffer, unless `fresh_buffer` starts
+    an empty one).
 
     With several processes, each checks (the same files: the same outcome) and they wait for
-    each other at the end, so that no process writes before every one has checked."""
+    each other before the block, so that no process writes before every one has checked."""
     if resume and overwrite:
         raise ConfigError("--resume and --overwrite exclude each other: continue the run or delete it")
     if resume and not given.get("run_dir"):
@@ -180,18 +187,22 @@ def prepare(
             run = dataclasses.replace(run, run_dir=os.path.join("runs", f"{run.env}-{run.agent}-{stamp}"))
         check_run_dir(run.run_dir, overwrite)
         config = dataclasses.replace(config, run=run)
-    # what the env must offer and whether the state fits (builds the env and traces init, no compile)
+    # what the env must offer and whether the state fits (traces init, compiles nothing)
     run = config.run
-    env = make_env(run.env, render=False)
+    env = make_env(run.env, render=config.agent.uses_image) if env is None else env
     validate.check_env_support(config.train, env)
-    whole = state_bytes(env, config)  # every seed's: what a checkpoint holds
-    check_memory(whole // len(device_layout(run.seeds, config.train, run.env_shards)[0]), device_memory(), run.seeds)
+    programs = loop.make_programs(env, config)
+    state = programs.abstract_state()
+    whole = rundir.tree_bytes(state)  # every seed's: what a checkpoint holds
+    check_memory(whole // len(programs.devices), device_memory(), run.seeds)
     rundir.check_space(run.run_dir, whole)
     if run.init_from and not resume:  # a resumed run continues its own checkpoint
-        transfer.check(env, config, make_env=make_env)
-    lock(run.run_dir, resume, overwrite)
-    multihost.barrier("bidal_jax.run.preflight.prepare")
-    return config
+        transfer.check(config, state, env.observation_spec.proprio_segments, make_env)
+    with lock(run.run_dir, resume, overwrite):
+        if overwrite:
+            delete_run_dir(run.run_dir)
+        multihost.barrier("bidal_jax.run.preflight.prepare")
+        yield Prepared(config, env, programs)
 
 
 def _main_decides(check: Callable[[], None], what: str) -> None:
@@ -207,10 +218,11 @@ def _main_decides(check: Callable[[], None], what: str) -> None:
         raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
 
 
-def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
-    """Lock `run_dir` for this run (process 0; `rundir.hold`) and check a new run's directory again
-    under the lock (a run that ended meanwhile may have filled it). Every process raises when
-    process 0 is refused: RunDirInUse or ConfigError."""
+@contextlib.contextmanager
+def lock(run_dir: str, resume: bool, overwrite: bool) -> Iterator[None]:
+    """Hold `run_dir`'s lock for the block (process 0; `rundir.hold`, then `rundir.release`), the one owner
+    of the lock of a run, and check a new run's directory again under it (a run that ended meanwhile may
+    have filled it). Every process raises when process 0 is refused: RunDirInUse or ConfigError."""
 
     def take() -> None:
         rundir.hold(run_dir)
@@ -222,6 +234,11 @@ def lock(run_dir: str, resume: bool, overwrite: bool) -> None:
             raise
 
     _main_decides(take, f"run directory {run_dir}")
+    try:
+        yield
+    finally:
+        if multihost.is_main():
+            rundir.release(run_dir)
 
 
 def delete_run_dir(run_dir: str) -> None:

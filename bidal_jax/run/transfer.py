@@ -20,9 +20,10 @@ checkpoint whose buffer files were deleted still serves):
   critic (UVFA's η), which start fresh, and the goal distributions differ (sliding's
   goals lie on the table, lifting's 5-25 cm above it: sliding's height spread, at the
   normaliser's floor, would clip every lift goal);
-- the encoder's proprio layer (`networks.PROPRIO_LAYER`) maps its input rows by segment
-  name: the target's proprio segments must be a subset of the source's (same names and
-  sizes, any order) and the target row of a feature is the source row of that feature.
+- the layer whose rows are the proprio features (the family's `proprio_kernel`, DDPG's
+  encoder's proprio layer) maps its input rows by segment name: the target's proprio
+  segments must be a subset of the source's (same names and sizes, any order) and the
+  target row of a feature is the source row of that feature.
   The proprio normaliser's per-feature statistics are mapped alike.
 
 Seeds: seed i of the new run starts from seed i of the source, so that S seeds of a
@@ -46,19 +47,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from bidal_jax import noise, normalizer
+from bidal_jax import agents, noise, normalizer
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, RunConfig
-from bidal_jax.networks import PROPRIO_LAYER
 from bidal_jax.run import checkpoint
 from bidal_jax.run.checkpoint import CheckpointError, leaf_name
-from bidal_jax.train import make_train
 
 Segments = Sequence[tuple[str, int]]
-PROPRIO_KERNEL = f"params/encoder/params/{PROPRIO_LAYER}/kernel"
-# the leaves whose first per-seed axis is the proprio feature axis
-ROW_MAPPED = frozenset(
-    {PROPRIO_KERNEL, *(f"proprio_norm/{k}" for k in normalizer.FEATURE_FIELDS + normalizer.LEGACY_FEATURE_FIELDS)}
-)
+
+
+def row_mapped(kernel: str) -> frozenset[str]:
+    """The leaves whose first per-seed axis is the proprio feature axis: the state's `kernel` (the family's
+    `proprio_kernel`) and the proprio normaliser's per-feature fields."""
+    fields = normalizer.FEATURE_FIELDS + normalizer.LEGACY_FEATURE_FIELDS
+    return frozenset({kernel, *(f"proprio_norm/{k}" for k in fields)})
 
 
 def parse_init_from(text: str) -> tuple[str, str | None]:
@@ -96,13 +97,14 @@ class Plan:
     wanted: dict  # the source's state metadata to restore (params subtrees, normalisers)
     rows: np.ndarray | None  # source proprio rows of this run's features, when the encoder reads proprio
     seeds: int  # this run's seeds: seed i from the source's seed i
+    mapped: frozenset[str]  # the leaves whose rows `rows` maps (`row_mapped`)
 
 
 def _leaves(tree: Any) -> dict[str, Any]:
     return {leaf_name(path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
-def _compare(where: str, saved: dict, target: dict, rows: np.ndarray | None) -> None:
+def _compare(where: str, saved: dict, target: dict, rows: np.ndarray | None, mapped: frozenset[str]) -> None:
     """Refuse unless the source's leaves `saved` match this run's `target` by name, per-seed shape and
     dtype; row-mapped leaves are compared after the mapping."""
     have, want = _leaves(saved), _leaves(target)
@@ -114,8 +116,8 @@ def _compare(where: str, saved: dict, target: dict, rows: np.ndarray | None) -> 
         raise CheckpointError(f"{where}: {owner} has {name} ({shape} per seed), {other} has none")
     for name, leaf in want.items():
         source_shape = tuple(have[name].shape[1:])
-        mapped = (len(rows), *source_shape[1:]) if name in ROW_MAPPED else source_shape
-        if mapped != tuple(leaf.shape[1:]) or np.dtype(have[name].dtype) != np.dtype(leaf.dtype):
+        expected = (len(rows), *source_shape[1:]) if name in mapped else source_shape
+        if expected != tuple(leaf.shape[1:]) or np.dtype(have[name].dtype) != np.dtype(leaf.dtype):
             raise CheckpointError(
                 f"{where}: {name} is {source_shape} {np.dtype(have[name].dtype)} per seed in the source, "
                 f"this run needs {tuple(leaf.shape[1:])} {np.dtype(leaf.dtype)}"
@@ -155,8 +157,9 @@ def plan(run: RunConfig, target: Any, segments: Segments, make_env: Callable[...
     # the source's leaves to read, and this run's leaves that receive them
     wanted = {"params": {name: saved["params"][name] for name in parts}}
     receiving = {"params": {name: target.params[name] for name in parts}}
-    rows = None
-    if PROPRIO_KERNEL in _leaves(receiving):
+    rows, kernel = None, f"params/{agents.get(run.agent).family.proprio_kernel}"
+    mapped = row_mapped(kernel)
+    if kernel in _leaves(receiving):
         try:
             source_segments = make_env(source.env, render=False).observation_spec.proprio_segments
         except ValueError as err:  # an env no longer registered
@@ -172,8 +175,8 @@ def plan(run: RunConfig, target: Any, segments: Segments, make_env: Callable[...
                 f"{env_size}: the env changed since the source was trained"
             )
         wanted["proprio_norm"], receiving["proprio_norm"] = saved["proprio_norm"], target.proprio_norm
-    _compare(where, wanted, receiving, rows)
-    return Plan(directory, step, parts, wanted, rows, seeds)
+    _compare(where, wanted, receiving, rows, mapped)
+    return Plan(directory, step, parts, wanted, rows, seeds, mapped)
 
 
 def apply(p: Plan, state: Any, restored: dict) -> Any:
@@ -181,7 +184,7 @@ def apply(p: Plan, state: Any, restored: dict) -> Any:
 
     def select(path, x):
         x = jnp.asarray(x)[: p.seeds]
-        return x[:, p.rows] if leaf_name(path) in ROW_MAPPED else x
+        return x[:, p.rows] if leaf_name(path) in p.mapped else x
 
     new = jax.tree_util.tree_map_with_path(select, restored)
     norms = {"proprio_norm": normalizer.from_saved(new["proprio_norm"])} if "proprio_norm" in new else {}
@@ -213,13 +216,12 @@ def make_initializer(
     return initialize
 
 
-def check(env, config: Config, make_env: Callable[..., Any]) -> Plan:
-    """The checks of `plan` for a run about to start (`preflight.prepare`): traces the run's init,
-    compiles nothing. Raises ConfigError when the source is the run's own directory, else as `plan`."""
+def check(config: Config, target: Any, segments: Segments, make_env: Callable[..., Any]) -> Plan:
+    """The checks of `plan` for a run about to start (`preflight.prepare`), whose abstract initial state
+    (`loop.Programs.abstract_state`) is `target`; compiles nothing. Raises ConfigError when the source is
+    the run's own directory, else as `plan`."""
     run = config.run
     source_dir = parse_init_from(run.init_from)[0]
     if os.path.realpath(source_dir) == os.path.realpath(run.run_dir):
         raise ConfigError(f"--init-from {run.init_from}: is this run's own --run-dir; the source must be another run")
-    init, _ = make_train(env, config)
-    target = jax.eval_shape(jax.vmap(init), jax.ShapeDtypeStruct((run.seeds, 2), jnp.uint32))
-    return plan(run, target, env.observation_spec.proprio_segments, make_env)
+    return plan(run, target, segments, make_env)

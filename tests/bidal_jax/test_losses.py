@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from bidal_jax import losses
+from bidal_jax.agents import ddpg
 from bidal_jax.config import AGENTS, NetworkConfig, TrainConfig
-from bidal_jax.networks import make_networks
 
 
 def test_intrinsic_reward_by_hand():
@@ -26,8 +26,8 @@ def test_min_reward_by_hand():
 
 def test_min_reward_holds_for_every_bidal_agent():
     """`min_reward` assumes φ(s) ∈ [-1, 1]^L, i.e. every BidAL agent has the tanh encoder."""
-    assert all(spec.uses_image for spec in AGENTS.values() if spec.bidal)
-    nets = make_networks(AGENTS["visual_bidal"], NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
+    assert all(agent.uses_image for agent in AGENTS.values() if agent.family is ddpg.BIDAL)
+    nets = AGENTS["visual_bidal"].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
     params = nets.init(jax.random.PRNGKey(0))
     image = jnp.full((2, 42, 42, 1), 255, jnp.uint8)  # with weights scaled up until tanh saturates
     phi = nets.encode(jax.tree.map(lambda x: 1e3 * x, params["encoder"]), image, jnp.zeros((2, 4)))
@@ -78,13 +78,12 @@ def _tiny_batch(b=3, d=4, g=2, a=2, image=True):
 def test_representation_loss_matches_a_hand_composition():
     """The loss equals critic MSE + forward + inverse losses computed here from the networks."""
     cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, forward_weight=0.7, inverse_weight=0.2)
-    nets = make_networks(
-        AGENTS["multimodal_bidal"], NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1)
+    nets = AGENTS["multimodal_bidal"].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1)
     )
     params = nets.init(jax.random.PRNGKey(0))
     target = jax.tree.map(lambda x: x * 0.9, params)
     batch = _tiny_batch()
-    loss, aux = losses.make_losses(nets, cfg, bidal=True).representation(params, target, batch)
+    loss, aux = losses.make_losses(nets, cfg, bidal=True).representation(params, params, target, batch)
 
     phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
     nphi = nets.encode(params["encoder"], batch["next_image"], batch["next_proprio"])
@@ -109,13 +108,14 @@ def test_representation_loss_matches_a_hand_composition():
 def test_representation_loss_floors_the_target_at_the_agents_r_min(agent, floor):
     """Q' = -1000 everywhere: y is the floor r_min/(1-γ), -(1 + 2·0.3·8)/0.1 with BidAL, -1/0.1 without."""
     cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3)
-    nets = make_networks(AGENTS[agent], NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
+    nets = AGENTS[agent].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
     params = nets.init(jax.random.PRNGKey(0))
     head = params["critic"]["params"]["Dense_2"]  # the critic's output layer (two hidden layers)
     constant_head = {"kernel": jnp.zeros_like(head["kernel"]), "bias": jnp.full_like(head["bias"], -1000.0)}
     target = {**params, "critic": {"params": {**params["critic"]["params"], "Dense_2": constant_head}}}
     batch = _tiny_batch()
-    _, aux = losses.make_losses(nets, cfg, bidal=AGENTS[agent].bidal).representation(params, target, batch)
+    loss = losses.make_losses(nets, cfg, bidal=AGENTS[agent].family is ddpg.BIDAL).representation
+    _, aux = loss(params, params, target, batch)
     phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
     q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
     np.testing.assert_allclose(float(aux["critic_loss"]), np.mean((q - floor) ** 2), rtol=1e-5)
@@ -123,10 +123,10 @@ def test_representation_loss_floors_the_target_at_the_agents_r_min(agent, floor)
 
 def test_actor_loss_has_the_action_penalty_and_leaves_the_encoder_alone():
     cfg = TrainConfig(action_l2=2.0)
-    nets = make_networks(AGENTS["proprio_baseline"], NetworkConfig(), 4, 2, 2, (42, 42, 1))
+    nets = AGENTS["proprio_baseline"].networks(NetworkConfig(), 4, 2, 2, (42, 42, 1))
     params = nets.init(jax.random.PRNGKey(1))
     batch = {**_tiny_batch(image=False), "phi": _tiny_batch(image=False)["proprio"]}
-    loss, _ = losses.make_losses(nets, cfg, bidal=False).actor(params["actor"], params, batch)
+    loss, _ = losses.make_losses(nets, cfg, bidal=False).actor(params["actor"], params, params, batch)
     a = nets.actor(params["actor"], batch["phi"], batch["goal"])
     q = nets.critic(params["critic"], batch["phi"], a, batch["goal"])
     np.testing.assert_allclose(float(loss), float(-q.mean() + 2.0 * jnp.mean(a**2)), rtol=1e-6)

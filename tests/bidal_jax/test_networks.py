@@ -6,16 +6,18 @@ import jax
 import numpy as np
 import pytest
 
+from bidal_jax.agents import ddpg
 from bidal_jax.config import AGENTS, NetworkConfig
-from bidal_jax.networks import PatchConv, make_networks
+from bidal_jax.networks import PatchConv
 
 
 @pytest.mark.parametrize("agent", sorted(AGENTS))
 def test_every_agent_builds_the_networks_it_needs(agent):
     spec = AGENTS[agent]
-    params = make_networks(spec, NetworkConfig(conv_channels=4), 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
+    params = spec.networks(NetworkConfig(conv_channels=4), 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
     assert ("encoder" in params) == spec.uses_image
-    assert ("forward" in params) == spec.bidal and ("inverse" in params) == spec.bidal
+    models = spec.family is ddpg.BIDAL
+    assert ("forward" in params) == models and ("inverse" in params) == models
 
 
 @pytest.mark.parametrize("native", [False, True])
@@ -35,7 +37,7 @@ def test_native_convs_are_the_same_encoder_with_the_same_parameters(strides):
     """--conv-impl native: the parameter tree (a checkpoint) is the same, and so are φ(s) and its gradients."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides, conv_impl=impl)
-        return make_networks(AGENTS["multimodal_bidal"], config, 4, 2, 2, (42, 42, 1))
+        return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
 
     patch, native = networks("patch"), networks("native")
     params = patch.init(jax.random.PRNGKey(0))["encoder"]
@@ -59,5 +61,5 @@ def test_conv_strides_set_the_vision_branch_feature_map(strides, features):
     """--conv-strides: the first layer unpadded, the others 'same'-padded, so the dense layer that
     ends the vision branch sees H×W×C features (42 → 14 → 7 → 4 → 2 for 3,2,2,2)."""
     config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides)
-    params = make_networks(AGENTS["visual_bidal"], config, 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
+    params = AGENTS["visual_bidal"].networks(config, 4, 2, 2, (42, 42, 1)).init(jax.random.PRNGKey(0))
     assert params["encoder"]["params"]["VisionBranch_0"]["Dense_0"]["kernel"].shape == (features, 64)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from bidal_jax.agents import ddpg
 from bidal_jax.config import Config, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.run.devices import make_seeded
 from bidal_jax.train import make_train
@@ -50,7 +51,7 @@ def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(age
     assert np.asarray(state.proprio_norm.count).tolist() == [3 * 2 * 4 * 51] * 2
     for key in ("critic_loss", "actor_loss", "q", "train_success"):
         assert np.isfinite(np.asarray(metrics[key])).all(), key
-    if config.agent.bidal:
+    if config.agent.family is ddpg.BIDAL:
         assert (np.asarray(metrics["intrinsic_reward"]) <= 0).all()
         assert np.isfinite(np.asarray(metrics["inverse_loss"])).all()
     folded = np.asarray(jax.jit(env.exploration_reset)(jax.random.PRNGKey(1)).obs["proprio"])

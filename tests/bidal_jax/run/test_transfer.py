@@ -20,8 +20,9 @@ import pytest
 
 import envs_mjx
 from bidal_jax import normalizer
+from bidal_jax.agents import ddpg
 from bidal_jax.config import resolve
-from bidal_jax.run import checkpoint, preflight, rundir, transfer
+from bidal_jax.run import checkpoint, preflight, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 from experiments import run
@@ -132,7 +133,7 @@ def test_restored_parts_equal_the_sources_by_name_and_the_proprio_rows_are_those
             assert set(got) == set(want), (part, tree)
             for name, value in got.items():
                 expected = want[name][:SEEDS]  # seed i from the source's seed i
-                if f"params/{part}/{name}" == transfer.PROPRIO_KERNEL:
+                if f"{part}/{name}" == ddpg.BIDAL.proprio_kernel:
                     assert want[name].shape == (SOURCE_SEEDS, 4, 8)  # rows q0 q1 qdot0 qdot1
                     expected = expected[:, :2]
                 np.testing.assert_array_equal(value, expected, err_msg=f"{tree}/{part}/{name}")
@@ -173,11 +174,11 @@ def test_the_transferred_run_trains_without_the_sources_buffer_and_records_its_s
 def test_resume_keeps_the_transfer_fields_and_does_not_transfer_again(transferred, source, monkeypatch, capsys):
     run_dir, _, _ = transferred
     monkeypatch.setattr(transfer, "check", lambda *a, **k: pytest.fail("a resumed run was checked for transfer"))
-    resumed = preflight.prepare(
+    with preflight.prepare(
         {"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=True
-    ).run
+    ) as prepared:
+        resumed = prepared.config.run
     assert (resumed.init_from, resumed.init_parts) == (source[1], ",".join(PARTS))
-    rundir.release(run_dir)  # prepare locked the run directory for this process's run
     assert_refused(
         ["--resume", "--run-dir", run_dir, "--init-from", source[0], "--quiet"],
         run_dir,
@@ -198,7 +199,8 @@ def test_row_map_picks_source_rows_by_segment_name_in_the_targets_order():
 
 def test_apply_puts_the_planned_rows_in_the_planned_order(transferred, source_state):
     _, fresh, _ = transferred
-    plan = transfer.Plan("", 1, ("encoder",), {}, np.array([3, 0]), SEEDS)  # qdot1, then q0
+    mapped = transfer.row_mapped(f"params/{ddpg.BIDAL.proprio_kernel}")
+    plan = transfer.Plan("", 1, ("encoder",), {}, np.array([3, 0]), SEEDS, mapped)  # qdot1, then q0
     restored = {
         "params": {"encoder": source_state.params["encoder"]},
         "proprio_norm": dataclasses.asdict(source_state.proprio_norm),
