@@ -84,7 +84,8 @@ def open_renderer(model, size: tuple[int, int], path: str):
     try:
         return mujoco.Renderer(model, size[1], size[0])
     except Exception as err:
-        raise ConfigError(f"--video {path}: MuJoCo cannot render on this machine ({str(err).strip() or err!r}); "
+        cause = str(err).strip() or repr(err)
+        raise ConfigError(f"--video {path}: MuJoCo cannot render on this machine ({cause}); "
                           "set MUJOCO_GL to egl or osmesa where one is installed, or leave out --video") from None
 
 
