@@ -50,7 +50,9 @@ an unfinished run's carried one: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
-written); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+written), or a run folder with a damaged file (one line naming it: the experiment stops rather than take the
+run for one never trained); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143
+stopped by SIGINT and SIGTERM (a checkpoint was saved; Ctrl-C before a run trains: nothing saved).
 """
 
 from __future__ import annotations

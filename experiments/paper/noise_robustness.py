@@ -27,7 +27,8 @@ before any agent trains; the table and plot are made from whatever metrics exist
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
 the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
 transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
-option, config or checkpoint; 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM.
+option, config or checkpoint, or a run folder with a damaged file (one line naming it; the experiment stops on
+it); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143 stopped by SIGINT and SIGTERM.
 """
 
 from __future__ import annotations

@@ -45,7 +45,8 @@ whose checkpoints were deleted). `--dry-run` prints the plan, each run with its 
 done or stale; `grid.plan`), and trains and writes nothing.
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
-line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+line), or a run folder with a damaged file (one line naming it; the experiment stops on it); 3 diverged; 4 the
+disk (a run's write, or table.md or the figure); 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations
