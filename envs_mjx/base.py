@@ -139,9 +139,10 @@ def load_model(filename: str) -> mujoco.MjModel:
 
 
 def sparse_reward(achieved_goal: jax.Array, desired_goal: jax.Array, epsilon: float) -> jax.Array:
-    """Paper Eq. 6, batched over leading axes: 0 within `epsilon`, else -1."""
+    """Paper Eq. 6, batched over leading axes: 0 within `epsilon`, else -1; a non-finite goal (a NaN distance,
+    which no comparison holds for) is -1, never a success."""
     dist = jnp.linalg.norm(achieved_goal - desired_goal, axis=-1)
-    return -(dist > epsilon).astype(jnp.float32)
+    return jnp.where(dist <= epsilon, 0.0, -1.0).astype(jnp.float32)
 
 
 def check_action(action: Any, action_size: int) -> None:

@@ -18,6 +18,11 @@ now, and `compute_reward(achieved_goal, desired_goal, info)` recomputes rewards 
 batch of goals (HER relabelling). Episodes never terminate; they are truncated after the
 task's T steps (`episode_length`).
 
+Edges: an action whose shape is not the action space's ([A] for `GoalEnv`, [num_envs, A] for
+`VectorGoalEnv`), or that holds NaN, is refused with a ValueError before anything is stepped (the
+env's state is unchanged); finite actions outside [-1, 1] are clipped. `compute_reward` counts a
+goal that is not finite (NaN, or inf against inf) as a failure: -1, never 0.
+
 Autoreset: Gymnasium's same-step mode (`AutoresetMode.SAME_STEP`). On the step that
 truncates an episode the env is reset within that step: the returned observation is the
 first of the next episode, the last observation of the ended episode is in
@@ -277,8 +282,8 @@ class VectorGoalEnv(VectorEnv):
         if self._carry is None:
             raise RuntimeError("step() called before reset(); call reset() first")
         actions = np.asarray(actions, np.float32)
-        if actions.shape[:1] != (self.num_envs,):
-            raise ValueError(f"actions have shape {actions.shape}; expected ({self.num_envs}, {self.env.action_size})")
+        if actions.shape != self.action_space.shape:
+            raise ValueError(f"actions have shape {actions.shape}; expected {self.action_space.shape}")
         check_action(actions, self.env.action_size)
         self._carry, views = self._batched.step(self._carry, actions)
         views = to_host(views, self._batched.packings[1])
@@ -293,7 +298,8 @@ class VectorGoalEnv(VectorEnv):
         return now["obs"], now["reward"], terminated, truncated, info
 
     def compute_reward(self, achieved_goal: Any, desired_goal: Any, info: Any = None) -> np.ndarray:
-        """The task's sparse reward for goals batched over leading axes (numpy in and out)."""
+        """The task's sparse reward for goals batched over leading axes (numpy in and out): 0 within ε, else -1;
+        -1 for a goal that is not finite."""
         achieved_goal, desired_goal = np.asarray(achieved_goal, np.float32), np.asarray(desired_goal, np.float32)
         return np.asarray(self._batched.reward(achieved_goal, desired_goal))
 
@@ -345,8 +351,12 @@ class GoalEnv(gymnasium.Env):
         return unbatch(obs, 0), {"is_success": bool(info["is_success"][0])}
 
     def step(self, action: Any):
-        """One step; at truncation the returned observation is the episode's last one."""
-        obs, reward, terminated, truncated, info = self.vector.step(np.asarray(action, np.float32)[None])
+        """One step; at truncation the returned observation is the episode's last one. ValueError (nothing
+        stepped) for an action not of the action space's shape [A]."""
+        action = np.asarray(action, np.float32)
+        if action.shape != self.action_space.shape:
+            raise ValueError(f"action has shape {action.shape}; expected {self.action_space.shape}")
+        obs, reward, terminated, truncated, info = self.vector.step(action[None])
         if truncated[0]:
             obs, success = info["final_obs"][0], info["final_info"]["is_success"][0]
         else:

@@ -6,9 +6,14 @@
   and the programs built once, the run directory locked and, when asked, emptied), restore
   another run's parameters when `init_from` asks, train.
 - `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
-  its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run directory
-  in use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed); 130 and 143
-  stopped by SIGINT and SIGTERM (a checkpoint was saved).
+  its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run file that is
+  damaged, unreadable or of the wrong type, an output folder that is missing, a run directory in
+  use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed: no space, quota,
+  read-only file system, I/O error, permission denied); 130 and 143 stopped by SIGINT and SIGTERM
+  (a checkpoint was saved).
+- `command(main)`: how every command's `__main__` runs its `main`: Ctrl-C where no run's stop
+  handler is installed (while the env is built, a program compiles, episodes are evaluated)
+  ends it with one line and exit 130, without a traceback.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import signal
 import sys
 from typing import Any, Callable, Sequence
 
@@ -23,7 +29,7 @@ import envs_mjx
 from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunConfig, fields_help, option
 from bidal_jax.run import loop, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
-from bidal_jax.run.guard import Diverged, Interrupted
+from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
 from bidal_jax.run.rundir import DiskError
 
 EXIT_BAD_INPUT = 2
@@ -44,6 +50,16 @@ def exit_code(err: Exception, resume_hint: str = "run the same command again to 
         return err.exit_code
     print(f"error: {err}", file=sys.stderr)
     return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT)
+
+
+def command(main: Callable[[], int]) -> int:
+    """`main()`'s exit code; a KeyboardInterrupt (Ctrl-C outside a run's `guard.StopSignals`, which saves a
+    checkpoint instead) is one line on stderr and `EXIT_ON_SIGNAL[SIGINT]` (130), without a traceback."""
+    try:
+        return main()
+    except KeyboardInterrupt:
+        print("\nstopped by Ctrl-C (SIGINT)", file=sys.stderr)
+        return EXIT_ON_SIGNAL[signal.SIGINT]
 
 
 def _bool(text: str) -> bool:

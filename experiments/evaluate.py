@@ -18,7 +18,10 @@ video's agent sees clean observations.
 `--video out.mp4` also renders `--video-episodes` episodes of seed 0 with MuJoCo's own
 renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view.
 
-Exit codes: 0 done; 2 bad input (one `error: ...` line).
+Exit codes: 0 done; 2 bad input: an option, a checkpoint, a --video or --json folder that does not exist or
+cannot be written, or a machine where MuJoCo cannot render a --video (each refused before the evaluation runs); 4
+writing --json or --video failed (no space, quota, read-only file system, permission denied); 130 stopped by Ctrl-C.
+Each failure is one `error: ...` line on stderr.
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax import noise
+from bidal_jax.config import ConfigError
+from bidal_jax.run import rundir, runfiles
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.policy import TrainedPolicy, evaluate_seeds, load_noise, load_policy
 from experiments import cli
@@ -70,20 +75,33 @@ def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, cle
     return f"observations: noisy as in training's evaluation, κ {_kappas(noise_state)} {where}"
 
 
-def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, size: tuple[int, int],
+def open_renderer(model, size: tuple[int, int], path: str):
+    """MuJoCo's offscreen renderer of `model` at `size` (width, height), made before the evaluation so that a
+    machine without an OpenGL platform is refused first: ConfigError naming the cause (MuJoCo raises
+    `mujoco.FatalError`, or its GL bindings another error, as the platform goes)."""
+    import mujoco
+
+    try:
+        return mujoco.Renderer(model, size[1], size[0])
+    except Exception as err:
+        cause = str(err).strip() or repr(err)
+        raise ConfigError(f"--video {path}: MuJoCo cannot render on this machine ({cause}); "
+                          "set MUJOCO_GL to egl or osmesa where one is installed, or leave out --video") from None
+
+
+def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, path: str, renderer,
                  quiet: bool = False) -> int:
-    """Write `episodes` episodes of seed 0 to `path`: MuJoCo's render (width × height) beside the
-    agent's 42×42 view scaled to the same height. Returns the number of frames written."""
+    """Write `episodes` episodes of seed 0 to `path`: MuJoCo's render by `renderer` (`open_renderer`, closed
+    here) beside the agent's 42×42 view scaled to the same height. Returns the number of frames written."""
     import imageio.v2 as imageio
     import mujoco
     from tqdm import tqdm
 
-    width, height = size
+    height = renderer.height
     policy = trained.policy(0)
     reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
     act = jax.jit(policy)
     model, data = env.mj_model, mujoco.MjData(env.mj_model)
-    renderer = mujoco.Renderer(model, height, width)
     scale = max(1, height // env.observation_spec.image_shape[0])
     frames = 0
 
@@ -96,17 +114,19 @@ def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, pat
         view = np.pad(np.repeat(view, 3, axis=2), ((0, height - view.shape[0]), (0, 0), (0, 0)))
         return np.concatenate([renderer.render(), view], axis=1)
 
-    with imageio.get_writer(path, fps=round(1 / 0.04), macro_block_size=1) as writer:
-        keys = jax.random.split(key, episodes)
-        for i in tqdm(range(episodes), desc="video", unit="episode", disable=quiet):
-            state = reset(keys[i][None])
-            writer.append_data(frame(state))
-            frames += 1
-            for _ in range(env.episode_length):
-                state = step(state, act(state.obs, None))
+    try:
+        with rundir.writing(path), imageio.get_writer(path, fps=round(1 / 0.04), macro_block_size=1) as writer:
+            keys = jax.random.split(key, episodes)
+            for i in tqdm(range(episodes), desc="video", unit="episode", disable=quiet):
+                state = reset(keys[i][None])
                 writer.append_data(frame(state))
                 frames += 1
-    renderer.close()
+                for _ in range(env.episode_length):
+                    state = step(state, act(state.obs, None))
+                    writer.append_data(frame(state))
+                    frames += 1
+    finally:
+        renderer.close()
     return frames
 
 
@@ -161,6 +181,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.video and not args.video.endswith(".mp4"):
             raise ValueError(f"--video {args.video}: must name an .mp4 file")
         size = _video_size(args.video_size)
+        for flag, path in (("--video", args.video), ("--json", args.json)):
+            if path:  # refused before the evaluation, not after it
+                runfiles.check_output_dir(os.path.dirname(path), flag)
         if not os.path.isdir(args.run_dir):
             raise ValueError(f"--run-dir {args.run_dir}: no such directory")
         trained = load_policy(args.run_dir, args.checkpoint)
@@ -168,8 +191,19 @@ def main(argv: list[str] | None = None) -> int:
         noise_state = run_noise if args.kappa is None else with_kappa(run_noise, args.kappa)
     except (ValueError, CheckpointError) as err:
         return cli.exit_code(err)
+    try:
+        return _evaluate(args, trained, noise_state, run_noise, size)
+    except (ConfigError, rundir.DiskError) as err:
+        return cli.exit_code(err)
+
+
+def _evaluate(args: argparse.Namespace, trained: TrainedPolicy, noise_state: noise.NoiseState | None,
+              run_noise: noise.NoiseState | None, size: tuple[int, int]) -> int:
+    """`main` once its options and the policy are checked: evaluate, print, write --json and --video (their
+    failures one line: ConfigError, `rundir.DiskError`)."""
     run = trained.config.run
     env = envs_mjx.make(run.env, render=trained.config.agent.uses_image)
+    renderer = open_renderer(env.mj_model, size, args.video) if args.video else None
     if args.seed is None:
         keys = trained.eval_key
     else:
@@ -184,25 +218,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"seed {i}: success {row.mean():.3f} (95 % interval {lo:.3f}-{hi:.3f})")
     print(f"mean success {mean:.3f} (95 % interval {low:.3f}-{high:.3f}) over {trained.seeds} seed(s)")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(
-                {
-                    "checkpoint": trained.step,
-                    "episodes": args.episodes,
-                    "per_seed": success.mean(axis=1).tolist(),
-                    "mean": mean,
-                    "interval": [low, high],
-                    "observations": observed,
-                },
-                f,
-                indent=2,
-            )
-    if args.video:
+        results = {"checkpoint": trained.step, "episodes": args.episodes, "per_seed": success.mean(axis=1).tolist(),
+                   "mean": mean, "interval": [low, high], "observations": observed}
+        with rundir.writing(args.json):
+            runfiles.write_atomic(args.json, json.dumps(results, indent=2))
+    if renderer is not None:
         key = jax.random.PRNGKey(0 if args.seed is None else args.seed)
-        frames = render_video(env, trained, key, args.video_episodes, args.video, size, args.quiet)
+        frames = render_video(env, trained, key, args.video_episodes, args.video, renderer, args.quiet)
         print(f"video: {args.video} ({frames} frames)")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

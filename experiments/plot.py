@@ -16,16 +16,20 @@ Labels are agent names unless runs of one panel share an agent; those are labell
 directory's basename. `--label RUN_DIR=NAME` names a run outright (the transfer arms
 "scratch" and "transfer"); `--label-by train.intrinsic_lambda` labels by a config value.
 
-Exit codes: 0 done; 2 a run directory without config.json or metrics.csv, or a bad option
-(one `error: ...` line on stderr).
+Exit codes: 0 done; 2 a run directory without config.json or metrics.csv, or with a damaged one (the line names
+the file), a bad option, or an --out folder that does not exist or cannot be written (refused before anything is
+read); 4 writing PREFIX.png or PREFIX.csv failed (no space, quota, read-only file system, permission denied);
+130 stopped by Ctrl-C. Each failure is one `error: ...` line on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Sequence
 
+from bidal_jax.run import rundir, runfiles
 from experiments import cli
 from experiments.report import X_AXES, curves, load_run, plot, summary_table
 
@@ -71,16 +75,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.last_n < 1:
             raise ValueError(f"--last-n {args.last_n}: must be a positive integer")
+        runfiles.check_output_dir(os.path.dirname(args.out), "--out")
         runs = [load_run(d) for d in args.run_dirs]
         labels = dict(args.label)
         cs = curves(runs, args.label_by, labels, args.panel_by)
-        png, table = plot(cs, args.out, args.x, args.title)
+        with rundir.writing(f"{args.out}.png and {args.out}.csv"):
+            png, table = plot(cs, args.out, args.x, args.title)
         summary = summary_table(runs, args.last_n, args.label_by, labels, args.threshold, args.panel_by)
-    except (ValueError, OSError) as err:
+    except (ValueError, rundir.DiskError) as err:
         return cli.exit_code(err)
     print(f"wrote {png} and {table}\n\n{summary}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

@@ -1,6 +1,8 @@
 """Reports of training runs, shared by the commands: reading runs, curves, tables and plots.
 
-- `load_run(run_dir)`: a run directory's `config.json` and `metrics.csv` as arrays.
+- `load_run(run_dir)`: a run directory's `config.json` and `metrics.csv` as arrays, read through
+  `bidal_jax.run.runfiles` (the one reader of run files): `NotARun` for a folder without a run with epochs,
+  `RunError` naming the file for a damaged one.
 - `curves(runs, label_by, labels, panel_by)`: one `Curve` per run (per-seed eval success
   against epochs, env steps and wall time), labelled and grouped into panels.
 - `final_per_seed`, `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
@@ -17,14 +19,14 @@ not counted), `wall_time_with_compile` from when training began (compilation inc
 from runs recorded before it); `last_time(run)` gives the tables the latter where a run has it.
 
 Used by `python -m experiments.plot`, the paper experiments and the benchmarks. It imports
-neither JAX nor the environments (matplotlib only when it draws), so that it stays light.
+neither JAX nor the environments (matplotlib only when it draws), so that it stays light; the commands
+that call it map the failures of its writes to one line (`bidal_jax.run.rundir.writing`).
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import os
 import re
 from collections import Counter
@@ -32,17 +34,36 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from bidal_jax.run import runfiles
+
 X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
 SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
 WITH_COMPILE = "wall_time_with_compile"
 
 
-class RunError(ValueError):
-    """A run directory that cannot be read; the message is one line naming its path."""
+class RunError(runfiles.RunFileError):
+    """A run directory that cannot be read (a damaged file in it); the message is one line naming its path."""
 
 
-def _column(rows: list[dict[str, str]], name: str) -> np.ndarray:
-    return np.array([float(r[name]) for r in rows])
+class NotARun(RunError):
+    """A folder without a run with epochs (yet): missing, without config.json or metrics.csv, or no row."""
+
+
+def _column(path: str, rows: list[dict[str, str]], name: str) -> np.ndarray:
+    return np.array([runfiles.number(path, r, name) for r in rows])
+
+
+def _read(run_dir: str, config_path: str, metrics_path: str) -> tuple[dict, list[dict[str, str]]]:
+    """(config.json, metrics.csv's whole rows) of a run directory; NotARun or RunError naming the path."""
+    if not os.path.isdir(run_dir):
+        raise NotARun(f"{run_dir}: no such run directory")
+    for path in (config_path, metrics_path):
+        if not os.path.lexists(path):
+            raise NotARun(f"{run_dir}: not a run directory (no {os.path.basename(path)})")
+    try:
+        return runfiles.read_json(config_path), runfiles.read_csv(metrics_path)[1]  # a row cut short is no epoch
+    except runfiles.RunFileError as err:
+        raise RunError(str(err)) from None
 
 
 def load_run(run_dir: str) -> dict:
@@ -51,34 +72,27 @@ def load_run(run_dir: str) -> dict:
     Keys: "dir", "name" (basename), "config" (the parsed config.json; `physics_of` reads its physics), "env", "agent",
     "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
     "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
-    success of each seed). Raises RunError naming the path.
+    success of each seed). Raises NotARun (a folder without a run with epochs yet) or RunError (a damaged
+    file), naming the path.
     """
-    if not os.path.isdir(run_dir):
-        raise RunError(f"{run_dir}: no such run directory")
     config_path, metrics_path = os.path.join(run_dir, "config.json"), os.path.join(run_dir, "metrics.csv")
-    for path in (config_path, metrics_path):
-        if not os.path.isfile(path):
-            raise RunError(f"{run_dir}: not a run directory (no {os.path.basename(path)})")
+    config, rows = _read(run_dir, config_path, metrics_path)
     try:
-        with open(config_path) as f:
-            config = json.load(f)
         env, agent, seeds = config["run"]["env"], config["run"]["agent"], int(config["run"]["seeds"])
     except (ValueError, KeyError, TypeError) as err:
         raise RunError(f"{config_path}: unreadable run config ({err!r})") from err
-    with open(metrics_path, newline="") as f:
-        rows = [r for r in csv.DictReader(f) if None not in r.values()]  # a row cut short is not an epoch
     if not rows:
-        raise RunError(f"{metrics_path}: no epochs yet")
+        raise NotARun(f"{metrics_path}: no epochs yet")
     seed_columns = sorted((int(m.group(1)), k) for k in rows[0] if (m := SEED_COLUMN.match(k)))
     if [i for i, _ in seed_columns] != list(range(seeds)):
         raise RunError(f"{metrics_path}: expected columns eval_success_seed0..{seeds - 1} for {seeds} seeds")
     try:
-        success = np.stack([_column(rows, k) for _, k in seed_columns], axis=1)
-        epoch, wall = _column(rows, "epoch"), _column(rows, "wall_time")
-        with_compile = _column(rows, WITH_COMPILE) if WITH_COMPILE in rows[0] else None
-        steps = _column(rows, "env_steps_total") / seeds
-    except (KeyError, ValueError) as err:
-        raise RunError(f"{metrics_path}: missing or malformed column ({err!r})") from err
+        success = np.stack([_column(metrics_path, rows, k) for _, k in seed_columns], axis=1)
+        epoch, wall = _column(metrics_path, rows, "epoch"), _column(metrics_path, rows, "wall_time")
+        with_compile = _column(metrics_path, rows, WITH_COMPILE) if WITH_COMPILE in rows[0] else None
+        steps = _column(metrics_path, rows, "env_steps_total") / seeds
+    except runfiles.RunFileError as err:
+        raise RunError(str(err)) from None
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
         "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,

@@ -28,8 +28,10 @@ loop and its outputs in `bidal_jax.run.loop`, the options and the start of a run
 Exit codes (`cli.exit_code`): 0 done; 2 bad command line, config or checkpoint, or a run directory in use
 by another run (one `error: ...` line on stderr, nothing written); 3 diverged; 4 the
 disk: no room for one checkpoint at start (nothing written), or a write failed (no space,
-quota, read-only file system, I/O error; the unfinished checkpoint is deleted, the last
-good one is kept); 130 stopped by SIGINT, 143 by SIGTERM (a checkpoint was saved).
+quota, read-only file system, I/O error, permission denied; the unfinished checkpoint is deleted, the last
+good one is kept); 130 stopped by SIGINT, 143 by SIGTERM (a checkpoint was saved; Ctrl-C before training
+starts: nothing saved). A resumed run's metrics.csv that is damaged or a folder is refused with 2, one
+it cannot write with 4, before compiling. docs/usage.md lists every command's exit codes.
 """
 
 from __future__ import annotations
@@ -62,4 +64,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

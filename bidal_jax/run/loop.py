@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bidal_jax.config import Config
-from bidal_jax.run import checkpoint, multihost, rundir
+from bidal_jax.run import checkpoint, multihost, rundir, runfiles
 from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
 from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
@@ -145,9 +145,8 @@ def _recorded(run_dir: str, key: str, resume: bool) -> list:
     what came before is unknown)."""
     if resume:
         try:
-            with open(os.path.join(run_dir, "config.json")) as f:
-                return list(json.load(f).get(key, []))
-        except (OSError, ValueError, TypeError):
+            return list(runfiles.read_json(os.path.join(run_dir, "config.json")).get(key, []))
+        except (runfiles.RunFileError, TypeError):
             pass
     return []
 
@@ -239,7 +238,10 @@ def _train(
                     raise Interrupted(signum, e, run.run_dir)
                 if done:
                     break
-        finally:
+        except BaseException:
+            runfiles.close_quietly(bar.close, log.close, mngr.close)  # their errors never mask this one
+            raise
+        with rundir.disk_errors(f"closing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             bar.close()
             log.close()
             mngr.close()

@@ -1,4 +1,4 @@
-"""A run's records: metrics.csv (one row per epoch), TensorBoard, and files written atomically.
+"""A run's records: metrics.csv (one row per epoch) and TensorBoard, read and written through `runfiles`.
 
 `epoch_row` turns one epoch's metrics (seed axis first) into a row: the seed means of every
 metric, each seed's eval success, env steps and times. `MetricsLog` writes the rows; on
@@ -8,17 +8,13 @@ resume it drops the rows written after the checkpoint the run continues from.
 from __future__ import annotations
 
 import csv
+import io
 import os
 
 import numpy as np
 from tensorboardX import SummaryWriter
 
-
-def write_atomic(path: str, text: str) -> None:
-    """Write `text` to `path` through a temporary file: a reader never sees half of it."""
-    with open(path + ".tmp", "w", newline="") as f:
-        f.write(text)
-    os.replace(path + ".tmp", path)
+from bidal_jax.run.runfiles import number, read_csv, write_atomic
 
 
 class MetricsLog:
@@ -42,21 +38,20 @@ class MetricsLog:
             self.writer = SummaryWriter(os.path.join(run_dir, "tb"), purge_step=purge)
 
     def _truncate(self, epoch: int, writes: bool) -> None:
-        with open(self.path, newline="") as f:
-            reader = csv.DictReader(f)
-            rows = list(reader)
-        if not reader.fieldnames:
+        """Keep the rows up to `epoch` (`runfiles.read_csv`: RunFileError for a damaged file), rewriting the
+        file when rows after it, or one cut short by a kill, were there."""
+        fields, rows, cut = read_csv(self.path)
+        if not fields:
             return
-        self.fields = list(reader.fieldnames)
-        # a row cut short by a kill has missing (None) values
-        kept = [r for r in rows if None not in r.values() and float(r["epoch"]) <= epoch]
-        if writes and len(kept) < len(rows):
-            with open(self.path + ".tmp", "w", newline="") as f:
-                writer = csv.DictWriter(f, self.fields)
-                writer.writeheader()
-                writer.writerows(kept)
-            os.replace(self.path + ".tmp", self.path)
-        self.last_row = {k: float(v) for k, v in kept[-1].items()} if kept else {}
+        self.fields = fields
+        kept = [r for r in rows if number(self.path, r, "epoch") <= epoch]
+        if writes and (cut or len(kept) < len(rows)):
+            text = io.StringIO()
+            writer = csv.DictWriter(text, self.fields)
+            writer.writeheader()
+            writer.writerows(kept)
+            write_atomic(self.path, text.getvalue())
+        self.last_row = {k: number(self.path, r, k) for r in kept[-1:] for k in r}
 
     def write(self, row: dict[str, float]) -> None:
         self.last_row = row

@@ -6,19 +6,19 @@
 `prepare` checks the config (`validate.check`), the run directory (a new run never mixes into
 an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
 config; it builds the env and the run's programs once (`loop.make_programs`), checks what the env
-must offer, whether the training state (`jax.eval_shape` of those programs) fits in the device's
-memory and one checkpoint of it on the disk and, for a transfer, the source run; then it locks the
-run directory (`rundir.hold`, process 0), deletes it with `overwrite`, and holds the lock until the
-`with` block ends: a second run, resumed run or experiment on it is refused. Errors are one line
-each: `ConfigError` (`rundir.RunDirInUse` among them), `CheckpointError`, `rundir.DiskError` (no
-space for one checkpoint).
+must offer, a resumed run's files, whether the training state (`jax.eval_shape` of those programs) fits
+in the device's memory and one checkpoint of it on the disk and, for a transfer, the source run; then it
+locks the run directory (`rundir.hold`, process 0), deletes it with `overwrite`, and holds the lock until
+the `with` block ends: a second run, resumed run or experiment on it is refused. Errors are one line
+each: `ConfigError` (`rundir.RunDirInUse` and `runfiles.RunFileError`, a resumed run's damaged file,
+among them), `CheckpointError`, `rundir.DiskError` (no space for one checkpoint, or a resumed run's file
+that it cannot write).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import os
 import shutil
 import time
@@ -27,7 +27,7 @@ from typing import Any, Callable, Iterable, Iterator, NamedTuple
 import jax
 
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
-from bidal_jax.run import loop, multihost, rundir, transfer, validate
+from bidal_jax.run import loop, multihost, rundir, runfiles, transfer, validate
 from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, read_metadata
 
 # fields whose value on resume may differ from the checkpoint's: the budget, the place, and how the convs are
@@ -62,9 +62,8 @@ def _config_differences(saved: dict, other: dict) -> list[tuple[str, str, object
 def _check_config_json(run_dir: str, saved: dict, where: str) -> None:
     """Refuse a checkpoint whose config differs from the run's config.json (one from another run)."""
     try:
-        with open(os.path.join(run_dir, "config.json")) as f:
-            recorded = json.load(f)
-    except (OSError, ValueError):
+        recorded = runfiles.read_json(os.path.join(run_dir, "config.json"))
+    except runfiles.RunFileError:
         return  # a missing or damaged copy is rewritten from the checkpoint's config
     differences = _config_differences(saved, recorded)
     if differences:
@@ -107,6 +106,20 @@ def resumed_config(run_dir: str, given: dict[str, Any]) -> Config:
         raise ConfigError(f"--epochs {run.epochs}: must be at least the checkpoint's epoch {step}")
     network = dataclasses.replace(config.network, conv_impl=given.get("conv_impl", config.network.conv_impl))
     return dataclasses.replace(config, run=run, network=network)
+
+
+def check_run_files(run_dir: str) -> None:
+    """A resumed run's files, before anything is compiled: its metrics.csv must read as CSV (`runfiles.read_csv`;
+    RunFileError, exit 2, naming a damaged one or a folder in its place), config.json must not be a folder, and
+    the run must be able to append to metrics.csv and replace config.json (DiskError, exit 4, naming the path)."""
+    metrics_csv, config_json = os.path.join(run_dir, "metrics.csv"), os.path.join(run_dir, "config.json")
+    if os.path.lexists(metrics_csv):
+        runfiles.read_csv(metrics_csv)
+    if os.path.isdir(config_json):
+        raise runfiles.RunFileError(f"{config_json}: is a directory, not a file")
+    for path in (run_dir, *(p for p in (metrics_csv,) if os.path.lexists(p))):
+        if not os.access(path, os.W_OK):
+            raise rundir.DiskError(f"permission denied: {path} cannot be written; fix its permissions and resume")
 
 
 def check_run_dir(run_dir: str, overwrite: bool) -> None:
@@ -177,6 +190,7 @@ def prepare(
     validate.check(config, env_names=env_names)  # the values given
     if resume:
         config = resumed_config(given["run_dir"], given)
+        check_run_files(config.run.run_dir)
         validate.check(config, env_names=env_names)  # the checkpoint's
         if not fresh_buffer:  # its buffer's metadata: a CheckpointError saying so when the item is missing
             read_metadata(os.path.join(config.run.run_dir, "checkpoints"), names=("buffer",))

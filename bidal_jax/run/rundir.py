@@ -11,8 +11,10 @@ failures reported in one line.
 - `check_space(directory, needed)` refuses (`DiskError`) a run whose file system has less free
   space than one checkpoint needs (`with_margin`: its arrays' bytes, uncompressed, plus a margin).
 - `disk_errors(what, last_good)`: a block whose disk failure (no space, quota, read-only file
-  system, I/O error; an `OSError`, or a TensorStore error naming the OS error code, as Orbax
-  raises it) becomes one `DiskError` line, "no space left on device while WHAT; LAST_GOOD".
+  system, I/O error, permission denied; an `OSError`, or a TensorStore error naming the OS error
+  code, as Orbax raises it) becomes one `DiskError` line, "no space left on device while WHAT; LAST_GOOD".
+  `writing(path)` is that block for a command's output file (a table, figure, video, JSON), any
+  other `OSError` of which becomes a `ConfigError` line naming the path.
   Meanwhile the reports of that failure by Orbax's background threads and pending writes (absl
   and asyncio log records with tracebacks, exceptions of callbacks into a closed event loop) are
   dropped; after a disk error they stay dropped, since the process is about to end on it.
@@ -43,6 +45,8 @@ DISK_ERRNOS = {
     errno.EDQUOT: "disk quota exceeded",
     errno.EROFS: "read-only file system",
     errno.EIO: "input/output error",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
 }
 # how TensorStore (under Orbax) names the OS error of a failed write
 OS_ERROR_CODE = re.compile(r"os_error_code='?(\d+)")
@@ -231,3 +235,15 @@ def disk_errors(what: str, last_good: str) -> Iterator[None]:
             for logger in loggers:
                 logger.removeFilter(dropping)
             sys.unraisablehook = hook
+
+
+@contextlib.contextmanager
+def writing(path: str) -> Iterator[None]:
+    """Run a block that writes a command's output `path`: a disk or permission failure becomes DiskError
+    (`disk_errors`, exit 4), any other OSError (e.g. a folder where the file should be) a ConfigError
+    naming `path` (exit 2); one line each."""
+    try:
+        with disk_errors(f"writing {path}", "free some space or fix the permissions and run the command again"):
+            yield
+    except OSError as err:
+        raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None

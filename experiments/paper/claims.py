@@ -31,8 +31,10 @@ Time: the file ends with what the runs on today's physics took, per experiment a
 `--readme FILE` also writes the table (without the rules), the time and the command into FILE, replacing the
 text from its line `README_START` to its line `README_END`; a FILE without them is refused.
 
-Exit codes: 0 written; 2 bad option, an unreadable run folder, or a --readme without the block (one `error: ...`
-line; nothing written).
+Exit codes: 0 written; 2 bad option, a run folder with a damaged file (the line names the file; the claims stop
+rather than leave the run out), an --out folder that does not exist or cannot be written, or a --readme without
+the block (one `error: ...` line; nothing written); 4 a write failed (no space, quota, read-only file system,
+permission denied: one line); 130 stopped by Ctrl-C.
 """
 
 from __future__ import annotations
@@ -47,7 +49,7 @@ from typing import Sequence
 import numpy as np
 
 from bidal_jax.config import AGENTS
-from bidal_jax.run import metrics
+from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
 from experiments.paper import grid, protocol
 
@@ -272,15 +274,16 @@ def claims_table(rows: Sequence[Claim]) -> str:
 
 
 def runs_below(folder: str) -> list[dict]:
-    """Every readable run folder below `folder` (`report.load_run`), in walking order."""
+    """Every run folder with epochs below `folder` (`report.load_run`), in walking order; a damaged one raises
+    `report.RunError` naming its file (the claims stop on it: exit 2)."""
     runs = []
     for where, _, files in sorted(os.walk(folder)):
         if "config.json" not in files:
             continue
         try:
             runs.append(report.load_run(where))
-        except report.RunError:
-            continue  # not a run the claims read (they say why where they need it)
+        except report.NotARun:
+            continue  # no epochs yet: not a run the claims read (they say why where they need it)
     return runs
 
 
@@ -395,7 +398,8 @@ def write_readme(path: str, block: str) -> None:
     if start < 0 or end < start:
         raise ValueError(f"--readme {path}: no claims block to replace; it needs the line {README_START!r} and, "
                          f"after it, the line {README_END!r}")
-    metrics.write_atomic(path, text[:start] + block + text[end + len(README_END):])
+    with rundir.writing(path):
+        runfiles.write_atomic(path, text[:start] + block + text[end + len(README_END):])
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -419,6 +423,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.stale else set()
         if args.last_n < 1:
             raise ValueError(f"--last-n {args.last_n}: must be a positive integer")
+        runfiles.check_output_dir(os.path.dirname(args.out), "--out")  # before the work, not after it
     except ValueError as err:
         return cli.exit_code(err)
     options = [f"--curves {args.curves}", f"--noise {args.noise}", f"--transfer {args.transfer}", f"--out {args.out}"]
@@ -429,12 +434,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                                     " ".join([PROG, *options]))
         if args.readme:
             write_readme(args.readme, block)
-    except (report.RunError, ValueError) as err:  # e.g. a run folder unreadable, a noise κ in two folders, no block
+        with rundir.writing(args.out):
+            runfiles.write_atomic(args.out, text)
+    except (ValueError, rundir.DiskError) as err:  # e.g. a run folder damaged, a noise κ in two folders, no block
         return cli.exit_code(err)
-    metrics.write_atomic(args.out, text)
     print(f"{text}\nwritten to {args.out}" + (f" and {args.readme}" if args.readme else ""))
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

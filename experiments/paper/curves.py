@@ -51,7 +51,9 @@ an unfinished run's carried one: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
-written); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+written), or a run folder with a damaged file (one line naming it: the experiment stops rather than take the
+run for one never trained); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143
+stopped by SIGINT and SIGTERM (a checkpoint was saved; Ctrl-C before a run trains: nothing saved).
 """
 
 from __future__ import annotations
@@ -245,7 +247,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         return None
     stale = [arm.name for arm in arms
              if arm.name in runs and grid.stale_config(runs[arm.name]["config"], arm, today[arm.given["env"]])]
-    report.plot(report.curves(list(runs.values())), os.path.join(out, "curves"), title=title)
+    grid.write_figure(report.curves(list(runs.values())), os.path.join(out, "curves"), title)
     total = sum(report.last_time(r)[0] for r in runs.values())
     return "\n".join([
         f"# {title}",
@@ -278,22 +280,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         return cli.exit_code(err)
     code, envs = 0, None
-    if not args.report:
-        envs = grid.make_envs(arms)
-        print(plan_text(arms, envs), flush=True)
-        if args.dry_run:
-            print(grid.DRY_RUN)
-            return 0
-        code = grid.train_arms(arms, envs, args.quiet)
-    variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
-    title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
-    if multihost.is_main():  # one process writes the results
-        # each task's physics today: of the envs built to train, else (--report) built for it
-        today = ({arm.given["env"]: envs[arm.name].physics_id for arm in arms} if envs
-                 else grid.physics_today(arm.given["env"] for arm in arms))
-        grid.write_table(out, plot_results(out, arms, title, args.last_n, today, regenerate_command(args, rest, out)))
+    try:
+        if not args.report:
+            envs = grid.make_envs(arms)
+            print(plan_text(arms, envs), flush=True)
+            if args.dry_run:
+                print(grid.DRY_RUN)
+                return 0
+            code = grid.train_arms(arms, envs, args.quiet)
+        variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
+        title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
+        if multihost.is_main():  # one process writes the results
+            # each task's physics today: of the envs built to train, else (--report) built for it
+            today = ({arm.given["env"]: envs[arm.name].physics_id for arm in arms} if envs
+                     else grid.physics_today(arm.given["env"] for arm in arms))
+            grid.write_table(out, plot_results(out, arms, title, args.last_n, today,
+                                               regenerate_command(args, rest, out)))
+    except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)
+        failed = cli.exit_code(err)
+        return code or failed
     return code
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

@@ -25,7 +25,7 @@ from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
 from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
-from bidal_jax.run import checkpoint, validate
+from bidal_jax.run import checkpoint, rundir, runfiles, validate
 from experiments import cli, report
 
 # what passes through to every run: the learner and network options (the exploration starts are
@@ -269,10 +269,12 @@ def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
 
 
 def loaded(run_dir: str) -> dict | None:
-    """The run's metrics and config (`report.load_run`), or None while it has no epochs."""
+    """The run's metrics and config (`report.load_run`), or None while it has no epochs (`report.NotARun`); a
+    damaged file raises `report.RunError` naming it: an experiment stops on it (exit 2) rather than take the run
+    for one never trained."""
     try:
         return report.load_run(run_dir)
-    except report.RunError:
+    except report.NotARun:
         return None
 
 
@@ -310,10 +312,18 @@ def gaps(arms: Sequence[Arm], runs: dict[str, dict]) -> str:
 
 
 def write_table(out: str, text: str | None) -> None:
-    """Write `text` to OUT/table.md and print it; None: no run has epochs yet."""
+    """Write `text` to OUT/table.md (`runfiles.write_atomic`; a failed write is one line, `rundir.writing`) and print
+    it; None: no run has epochs yet."""
     if text is None:
         print("no epochs yet: nothing to plot")
         return
-    with open(os.path.join(out, "table.md"), "w") as f:
-        f.write(text)
+    path = os.path.join(out, "table.md")
+    with rundir.writing(path):
+        runfiles.write_atomic(path, text)
     print(f"\n{text}\nwritten to {out}")
+
+
+def write_figure(curves: Sequence[report.Curve], prefix: str, title: str) -> None:
+    """`report.plot` into PREFIX.png and PREFIX.csv, a failed write one line (`rundir.writing`)."""
+    with rundir.writing(f"{prefix}.png and {prefix}.csv"):
+        report.plot(curves, prefix, title=title)

@@ -27,7 +27,8 @@ before any agent trains; the table and plot are made from whatever metrics exist
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
 the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
 transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
-option, config or checkpoint; 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM.
+option, config or checkpoint, or a run folder with a damaged file (one line naming it; the experiment stops on
+it); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143 stopped by SIGINT and SIGTERM.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax.config import ConfigError, resolve
-from bidal_jax.run import multihost
+from bidal_jax.run import multihost, rundir, runfiles
 from experiments import cli, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
@@ -147,24 +148,26 @@ def write_report(out: str) -> str:
     found, budgets = load_noise_curves(out)
     if not found:
         return ""
-    report.plot(list(found.values()), os.path.join(out, "curves"), title="nicol_slide under observation noise")
+    grid.write_figure(list(found.values()), os.path.join(out, "curves"), "nicol_slide under observation noise")
     run_dirs = dict.fromkeys(curve.run_dir for curve in found.values())  # the folders read, in the table's order
     configs = {os.path.basename(d): grid.loaded(d)["config"] for d in run_dirs}
     resumed = "\n".join(grid.fresh_buffer_note(configs))
     absent = report.absent_note({os.path.basename(curve.run_dir): curve.epoch for curve in found.values()})
     lost = f"{absent}\n" if absent else ""
     text = f"{table(found, budgets)}\n{lost}{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
-    with open(os.path.join(out, "table.md"), "w") as f:
-        f.write(text)
+    path = os.path.join(out, "table.md")
+    with rundir.writing(path):
+        runfiles.write_atomic(path, text)
     return text
 
 
 def report_or_error(write: Callable[[], None]) -> int:
-    """Run `write` (the table from the run folders); a folder it cannot read (a κ in both layouts, a run folder
-    damaged outside its run) is one `error: ...` line and exit code 2, also after training (whose runs are kept)."""
+    """Run `write` (the plan, or the table from the run folders); a folder it cannot read (a κ in both layouts, a
+    run folder damaged outside its run: `report.RunError`) is one `error: ...` line and exit code 2, a failed write
+    of the table or figure (`rundir.writing`) one line and 2 or 4, also after training (whose runs are kept)."""
     try:
         write()
-    except report.RunError as err:
+    except (ConfigError, rundir.DiskError) as err:  # report.RunError is a ConfigError
         return cli.exit_code(err)
     return 0
 
@@ -220,7 +223,9 @@ def main(argv: list[str] | None = None) -> int:
           f"each ({programs}), {given['epochs']} epochs, into {args.out}")
     arms = make_arms(args.agents, kappas, args.out, given, args.runs)
     envs = grid.make_envs(arms)
-    print(grid.plan(arms, envs), flush=True)
+    code = report_or_error(lambda: print(grid.plan(arms, envs), flush=True))  # a damaged run folder: exit 2
+    if code:
+        return code
     if args.dry_run:
         print(grid.DRY_RUN)
         return 0
@@ -234,4 +239,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

@@ -45,7 +45,8 @@ whose checkpoints were deleted). `--dry-run` prints the plan, each run with its 
 done or stale; `grid.plan`), and trains and writes nothing.
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
-line); 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+line), or a run folder with a damaged file (one line naming it; the experiment stops on it); 3 diverged; 4 the
+disk (a run's write, or table.md or the figure); 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
 """
 
 from __future__ import annotations
@@ -223,7 +224,7 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
     if not runs:
         return None
     curves = report.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
-    report.plot(curves, os.path.join(out, "success"), title=title)
+    grid.write_figure(curves, os.path.join(out, "success"), title)
     notes = [
         f"# {TARGET_ENV}: {title}",
         "",
@@ -261,7 +262,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         return cli.exit_code(err)
     envs = grid.make_envs(arms)
-    print(grid.plan(arms, envs), flush=True)
+    try:
+        print(grid.plan(arms, envs), flush=True)
+    except ConfigError as err:  # a damaged run folder (`report.RunError`)
+        return cli.exit_code(err)
     if args.dry_run:
         print(grid.DRY_RUN)
         return 0
@@ -276,11 +280,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     variant = ", held starts" if args.held_starts else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results
-        text = plot_results(out, arms, source_dir(args, out), title, args.last_n)
-        command = regenerate_command(args, out)
-        grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
+        try:
+            text = plot_results(out, arms, source_dir(args, out), title, args.last_n)
+            command = regenerate_command(args, out)
+            grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
+        except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)
+            failed = cli.exit_code(err)
+            return code or failed
     return code
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(cli.command(main))

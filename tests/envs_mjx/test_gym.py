@@ -1,8 +1,11 @@
 """The Gymnasium adapters (envs_mjx.gym): Gymnasium's env checker, the vector env's spaces,
-truncation with same-step autoreset, rewards, seeding, the image option and rendering.
+truncation with same-step autoreset, rewards, seeding, the image option and rendering, and the edges:
+wrongly shaped actions refused before the step, non-finite goals rewarded as failures.
 
 All on planar_reach with 1 and 2 envs; the compiled functions are shared per (task, envs, image).
 """
+
+import re
 
 import gymnasium
 import numpy as np
@@ -127,3 +130,25 @@ def test_bad_arguments_are_refused_with_clear_errors(envs):
         envs.step(np.zeros((3, 2)))
     with pytest.raises(ValueError, match="NaN"):
         envs.step(np.full((NUM_ENVS, 2), np.nan))
+
+
+def test_wrongly_shaped_actions_are_refused_before_the_step_and_the_state_is_kept(envs):
+    single = eg.GoalEnv("planar_reach")
+    obs, _ = single.reset(seed=0)
+    for action in (np.zeros((2, 2)), np.zeros(3), np.zeros(())):  # (2, 2) once reached the jitted step
+        with pytest.raises(ValueError, match=rf"action has shape {re.escape(str(np.shape(action)))}; expected \(2,\)"):
+            single.step(action)
+    after, *_ = single.step(np.zeros(2))  # the state the refused actions left: the reset's, one step on
+    assert single.vector._carry is not None and after["desired_goal"].tolist() == obs["desired_goal"].tolist()
+    envs.reset(seed=0)
+    with pytest.raises(ValueError, match=r"actions have shape \(2, 2, 1\); expected \(2, 2\)"):
+        envs.step(np.zeros((NUM_ENVS, 2, 1)))
+    single.close()
+
+
+def test_compute_reward_counts_a_goal_that_is_not_finite_as_a_failure(envs):
+    # NaN against anything, and inf against inf, have a NaN distance (it once gave -0.0: a success)
+    achieved = np.array([[np.nan, 0.0], [np.inf, 0.0], [0.0, 0.0]], np.float32)
+    desired = np.array([[0.0, 0.0], [np.inf, 0.0], [0.0, 0.0]], np.float32)
+    reward = envs.compute_reward(achieved, desired, None)
+    assert reward.tolist() == [-1.0, -1.0, 0.0] and not np.signbit(reward[2])
