@@ -25,7 +25,8 @@ Resumable: a finished agent is skipped, an interrupted one resumed from its late
 checkpoint, and a stale one (`grid.stale`: made on other physics or with another config) refused
 before any agent trains; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
-the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
+the nicol_slide preset's; `--ray` trains the programs as cells of Ray tasks, all at once where the
+GPUs allow (`experiments/cluster.py`). The agents' runs are trained by `experiments/paper/grid.py` (as the
 transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
 option, config or checkpoint; 3 diverged; 130 and 143 stopped by SIGINT and SIGTERM.
 """
@@ -43,7 +44,7 @@ import numpy as np
 import envs_mjx
 from bidal_jax.config import ConfigError, resolve
 from bidal_jax.run import multihost
-from experiments import cli, report
+from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import (
@@ -193,6 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--dry-run", action="store_true", help="print the plan (each program's state: new, resume, "
                       "done or stale); train and write nothing")
     parser.add_argument("--quiet", action="store_true")
+    grid.add_training_options(parser)
     return parser
 
 
@@ -211,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
             if os.path.isfile(os.path.join(args.out, agent, "metrics.csv")):
                 raise ConfigError(f"--kappas {args.kappas}: {os.path.join(args.out, agent)} already holds every κ "
                                   f"of {agent}; train them in another --out")
+        cluster.prepare_driver(args)
         multihost.initialize()
     except ConfigError as err:
         return cli.exit_code(err)
@@ -225,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         print(grid.DRY_RUN)
         return 0
     os.makedirs(args.out, exist_ok=True)
-    code = grid.train_arms(arms, envs, args.quiet)
+    code = grid.train_arms(arms, envs, args)
     if code:
         return code
     if multihost.is_main():  # one process writes the results, from every run folder in --out (other programs' too)
