@@ -3,6 +3,7 @@ and a cell whose worker is killed mid-run is retried, resumes from its checkpoin
 with every epoch's row exactly once; the progress table and the option checks without Ray."""
 
 import argparse
+import json
 import os
 import signal
 import threading
@@ -13,6 +14,7 @@ import pytest
 from bidal_jax.config import ConfigError
 from bidal_jax.run import metrics
 from experiments import cluster
+from experiments.bench import sweep
 from experiments.paper import grid
 from tests.helpers import rows
 
@@ -57,6 +59,7 @@ def filled(local_ray, tmp_path_factory):
     return arms, grid.train_arms(arms, grid.make_envs(arms), ray_args())
 
 
+@pytest.mark.slow
 def test_a_two_cell_grid_fills_both_run_folders(filled, capsys):
     arms, code = filled
     assert code == 0
@@ -101,6 +104,7 @@ def kill_when_paused(folder: str, killed: list) -> None:
     killed.append(pid)
 
 
+@pytest.mark.slow
 def test_a_killed_worker_resumes_its_cell_from_its_checkpoint_with_its_buffer(filled, tmp_path):
     """The worker is killed with epoch 2's row written and checkpoint 1 on disk; the retried cell resumes from
     checkpoint 1 with its replay buffer (no `fresh_buffer_epochs`), cuts epoch 2's row and ends with every epoch's
@@ -119,6 +123,21 @@ def test_a_killed_worker_resumes_its_cell_from_its_checkpoint_with_its_buffer(fi
     assert epochs(resumed.run_dir) == list(range(1, EPOCHS + 1))
     assert grid.loaded(resumed.run_dir)["config"]["fresh_buffer_epochs"] == []
     assert rows(resumed.run_dir) == rows(uninterrupted.run_dir)  # bit-identical on CPU: the buffer was restored
+
+
+@pytest.mark.slow
+def test_sweep_variants_train_at_once_and_their_rows_land_in_out_in_order(local_ray, tmp_path):
+    out = tmp_path / "sweep.jsonl"
+    tiny = "num_envs=4,cycles_per_epoch=2,batch_size=8,buffer_episodes=8,eval_envs=4"
+    variants = [f"{tiny},updates_per_cycle=2", f"{tiny},updates_per_cycle=3"]
+    argv = ["--env", "planar_reach", "--agent", "proprio_baseline", "--seeds", "1", "--epochs", "2", "--out", str(out),
+            "--ray", "--gpus-per-cell", "0", "--progress-every", "1"]
+    assert sweep.main([*argv, *(a for v in variants for a in ("--variant", v))]) == 0
+    rows_out = [json.loads(line) for line in out.read_text().splitlines()]
+    assert [(r["variant"], r["epoch"]) for r in rows_out] == [(v, e) for v in variants for e in (1, 2)]
+    # 2 cycles an epoch of each variant's own updates per cycle
+    assert [r["updates_per_seed"] for r in rows_out] == [4, 8, 6, 12]
+    assert not os.path.exists(f"{out}.parts")
 
 
 def test_progress_table_gives_each_cells_epochs_and_the_etas_from_the_pace_so_far():
