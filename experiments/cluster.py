@@ -36,6 +36,7 @@ from bidal_jax.config import ConfigError
 from experiments import report
 
 EXIT_LOST = 5  # a cell's worker died more often than --retries allows
+EXIT_SIGINT = 130  # the driver stopped by Ctrl-C, as experiments.run's
 # the share of a GPU's memory JAX may take per share of the GPU a cell is given (the rest: CUDA contexts)
 MEMORY_PER_SHARE = 0.9
 # the folder holding the packages, which workers put first on their path (this checkout's code, not another)
@@ -169,8 +170,8 @@ def import_ray():
 def run_cells(cells: Sequence[Cell], work: Callable[[Any], int], args: argparse.Namespace) -> int:
     """Train every cell as a Ray task (`run_cell`: `work(cell.payload)` in a worker, returning its exit code),
     printing a progress table every `args.progress_every` seconds and a line as each cell ends; the grid's exit
-    code (the module docstring). Starts a local Ray, or joins `args.ray_address`, unless Ray is running in this
-    process already (then it is left running)."""
+    code (the module docstring; 130 when Ctrl-C stops the driver, whose tasks end with it). Starts a local Ray,
+    or joins `args.ray_address`, unless Ray is running in this process already (then it is left running)."""
     check_options(args)
     ray = import_ray()
     started = not ray.is_initialized()
@@ -178,6 +179,10 @@ def run_cells(cells: Sequence[Cell], work: Callable[[Any], int], args: argparse.
         ray.init(address=args.ray_address, include_dashboard=False, log_to_driver=True)
     try:
         return _drive(ray, cells, work, args)
+    except KeyboardInterrupt:  # the driver's tasks end with it; their cells continue from their checkpoints
+        print("interrupted: the cells' tasks are stopped; run the same command again to resume each from its "
+              "latest checkpoint", file=sys.stderr)
+        return EXIT_SIGINT
     finally:
         if started:
             ray.shutdown()

@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import signal
+import sys
 import threading
 import time
 
@@ -169,3 +170,10 @@ def test_a_fraction_of_a_gpu_limits_the_workers_jax_memory():
     assert cluster.worker_env(0.5)["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.45"
     assert "XLA_PYTHON_CLIENT_MEM_FRACTION" not in cluster.worker_env(1.0)
     assert cluster.worker_env(0)["PYTHONPATH"].split(os.pathsep)[0] == cluster.ROOT
+
+
+def test_ray_without_the_extra_is_refused(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails as where the cluster extra is not installed
+    cells = [cluster.Cell("a", 1, None, lambda: 0)]
+    with pytest.raises(ConfigError, match=r'--ray needs Ray: pip install -e "\.\[cluster\]"'):
+        cluster.run_cells(cells, lambda payload: 0, ray_args())
