@@ -37,7 +37,7 @@ def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, a
                    given: dict | None = None, buffer: bool = True) -> None:
     """A run directory as `loop.train` writes it (config.json, metrics.csv), with an (empty) checkpoint
     step unless `checkpoint_epoch` is None, holding an (empty) replay buffer item unless `buffer` is False (a
-    run carried without it, `experiments.carry`). `rows`: per epoch, each seed's eval success; every
+    checkpoint whose buffer was deleted). `rows`: per epoch, each seed's eval success; every
     epoch is 100 env steps per seed and 10 s of wall time. With `compile_seconds`, metrics.csv has
     `wall_time_with_compile` (`wall_time` plus them); without, it is a run recorded before that column. With
     `physics`, config.json records those physics fingerprints; without, it is a run recorded before them. With

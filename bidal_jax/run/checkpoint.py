@@ -152,8 +152,8 @@ def latest_step(directory: str) -> int | None:
 
 
 def has_buffer(directory: str, step: int | None = None) -> bool:
-    """Whether a checkpoint (the latest by default) holds its replay buffer item: one carried without it
-    (`experiments.carry`) resumes only with an empty buffer; CheckpointError if the step is absent."""
+    """Whether a checkpoint (the latest by default) holds its replay buffer item: one without it (its buffer
+    deleted) resumes only with an empty buffer (`--fresh-buffer`); CheckpointError if the step is absent."""
     path, _ = _step_dir(directory, step)
     return os.path.isdir(os.path.join(path, "buffer"))
 

@@ -16,6 +16,12 @@ sampled transition; the report adds the area under the curve (mean success over 
 |r_i| / |r_e|, what the λ sweep (`--variant intrinsic_lambda=1`) reads. `--physics warp` steps the env with MuJoCo Warp
 (envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up, `--until S` once its
 mean eval success has reached S (a time-to-success sweep needs no epochs past its last threshold).
+
+`--ray` trains the variants at once instead, each a cell of a Ray task on its share of the machine's or cluster's
+GPUs (`experiments/cluster.py`): a variant writes its rows into OUT.parts/<i>.jsonl, and once every variant has
+ended they are appended to OUT in the variants' order; `process_seconds` then counts from the start of the
+variant's worker process. A variant keeps no checkpoint: one whose worker dies is retried from its first epoch,
+its rows rewritten.
 """
 
 from __future__ import annotations
@@ -23,6 +29,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+import shutil
 import time
 
 PROCESS_START = time.perf_counter()
@@ -31,6 +39,7 @@ import jax  # noqa: E402 - imported after the process clock starts, so that proc
 import numpy as np  # noqa: E402
 
 from bidal_jax.config import ConfigError, NetworkConfig, TrainConfig  # noqa: E402
+from experiments import cli, cluster  # noqa: E402
 from experiments.bench.programs import program_config, seeded_program  # noqa: E402
 
 THRESHOLDS = (0.5, 0.8, 0.9)
@@ -129,7 +138,44 @@ def report(paths: list[str]) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> None:
+def rows_written(path: str) -> int:
+    """The rows (epochs) a variant has written into its part file so far; 0 before it has one."""
+    try:
+        with open(path) as f:
+            return sum(1 for _ in f)
+    except FileNotFoundError:
+        return 0
+
+
+def train_part(payload: tuple) -> int:
+    """A Ray task's variant (`cluster.run_cells`): `train_variant` into its part file, written afresh (a retried
+    variant starts again: it has no checkpoint); exit code 0."""
+    args, label, overrides, network, options, path = payload
+    with open(path, "w") as sink:
+        train_variant(args, label, overrides, network, options, sink)
+    return 0
+
+
+def train_on_ray(args, variants: list) -> int:
+    """Every variant a cell of `cluster.run_cells`, each writing OUT.parts/<i>.jsonl; once all have ended, their
+    rows are appended to OUT in the variants' order and the parts deleted; the grid's exit code."""
+    parts = f"{args.out}.parts"
+    os.makedirs(parts, exist_ok=True)
+    paths = [os.path.join(parts, f"{i}.jsonl") for i in range(len(variants))]
+    cells = [cluster.Cell(f"{i}: {label}", args.epochs, (args, label, *parsed, path),
+                          lambda path=path: rows_written(path)) for i, ((label, parsed), path) in
+             enumerate(zip(variants, paths))]
+    code = cluster.run_cells(cells, train_part, args)
+    with open(args.out, "a") as sink:
+        for path in paths:
+            if os.path.exists(path):
+                with open(path) as part:
+                    sink.write(part.read())
+    shutil.rmtree(parts)
+    return code
+
+
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="nicol_slide")
     parser.add_argument("--agent", default="multimodal_bidal")
@@ -143,10 +189,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variant", action="append", default=None, help="preset, or k=v,net.k=v,opt.k=v overrides")
     parser.add_argument("--out", help="JSON-lines file, appended to")
     parser.add_argument("--report", nargs="+", help="print the table of these JSON-lines files and exit")
+    cluster.add_options(parser)
     args = parser.parse_args(argv)
     if args.report:
         print(report(args.report))
-        return
+        return 0
     if not 0.0 <= args.until <= 1.0:
         raise SystemExit(f"error: --until {args.until}: a success rate in [0, 1] is allowed (0: never stop early)")
     if not args.out:
@@ -157,10 +204,17 @@ def main(argv: list[str] | None = None) -> None:
             program_config(args.env, args.agent, overrides, network)
         except ConfigError as err:
             raise SystemExit(f"error: --variant {text}: {err}") from None
+    if cluster.wanted(args):
+        try:
+            cluster.prepare_driver(args)
+            return train_on_ray(args, variants)
+        except ConfigError as err:
+            return cli.exit_code(err)
     with open(args.out, "a") as sink:
         for label, (overrides, network, options) in variants:
             train_variant(args, label, overrides, network, options, sink)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -28,8 +28,9 @@ run dir, new/resume/done/stale) and its estimated time on one GPU running the ru
 train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run
 the same command again; a run whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's
 checkpoints), is at its epochs is skipped, an interrupted one resumes from its latest checkpoint (with an empty
-replay buffer where the checkpoint was carried without it, `experiments.carry`), one without a checkpoint
-starts again. A stale run
+replay buffer; a checkpoint without it is refused unless `--fresh-buffer`), one without a checkpoint
+starts again. `--ray` trains the runs as cells of Ray tasks, all at once where the GPUs allow
+(`experiments/cluster.py`; docs/usage.md "Clusters (Ray)"), into the same run folders. A stale run
 (`grid.stale`: its config.json records other physics than its task's today, or none, or a config that differs
 from its arm's today in a field that changes results, e.g. num_envs)
 is neither skipped nor resumed: while any run is stale, training refuses to start (exit 2, one
@@ -47,7 +48,7 @@ the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with
 the table counts them; another names the runs resumed with an empty replay buffer, `grid.fresh_buffer_note`,
 and the epochs a run's metrics.csv lacks; last, the command that regenerates them, `regenerate_command`). `--report`
 trains nothing and writes only these, e.g. from run folders whose checkpoints were not kept (results/ keeps none but
-an unfinished run's carried one: .gitignore).
+none: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
@@ -66,7 +67,7 @@ from typing import Any, Collection, Sequence
 
 from bidal_jax.config import AGENTS, ConfigError, option
 from bidal_jax.run import multihost
-from experiments import cli, report
+from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per task, for every agent
@@ -273,6 +274,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     out = grid.out_dir(args, "curves")
     try:
+        cluster.prepare_driver(args)
         multihost.initialize()
         tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
         agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
@@ -287,7 +289,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.dry_run:
                 print(grid.DRY_RUN)
                 return 0
-            code = grid.train_arms(arms, envs, args.quiet)
+            code = grid.train_arms(arms, envs, args)
         variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
         title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
         if multihost.is_main():  # one process writes the results

@@ -3,11 +3,12 @@
 
 An experiment is a list of `Arm`s: a name and the config fields of one run (`run_dir` and
 `epochs` resolved). `status` says what running it again does: "done" (its latest checkpoint is
-at its epochs: skipped), "resume" (an earlier checkpoint: continued from it; with an empty replay buffer when
-the checkpoint was carried without its buffer, `experiments.carry`, as `--resume --fresh-buffer` does), "new" (no
+at its epochs: skipped), "resume" (an earlier checkpoint: continued from it with its replay buffer; a checkpoint
+without its buffer is refused unless `--fresh-buffer`, a labelled deviation, resumes it with an empty one), "new" (no
 checkpoint: its directory is deleted and it starts again) or "stale" (its folder holds epochs of
 a run on other physics or with another config than the arm's today, `stale`: refused). `train_arms`
-trains them in-process (`cli.start_run`) and returns the exit code of experiments.run (`cli.exit_code`):
+trains them in-process one after another (`cli.start_run`), or with `--ray` as cells of Ray tasks
+(`experiments.cluster`), and returns the exit code of experiments.run (`cli.exit_code`):
 0 done; 2 bad config or checkpoint, a stale run (refused before any run trains; no folder is deleted
 or written), or a run directory in use (one `error: ...` line); 3 diverged; 4 the disk
 (no room for a checkpoint, or a write failed); 130 and 143 stopped by SIGINT and SIGTERM (a
@@ -20,13 +21,15 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import os
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
 from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
 from bidal_jax.run import checkpoint, rundir, runfiles, validate
-from experiments import cli, report
+from bidal_jax.run.checkpoint import CheckpointError
+from experiments import cli, cluster, report
 
 # what passes through to every run: the learner and network options (the exploration starts are
 # each experiment's --held-starts) and the checkpoint interval
@@ -44,13 +47,15 @@ DRY_RUN = "dry run: nothing trained or written"  # the last line of every experi
 
 @dataclasses.dataclass(frozen=True)
 class Arm:
-    """One run of an experiment: its name, its config fields, and what a fresh start does to the
+    """One run of an experiment: its name, its config fields, what a fresh start does to the
     initial state (`initialize`, e.g. the noise experiment's κ per seed; by default the transfer's
-    restore when the run has `init_from`, else nothing)."""
+    restore when the run has `init_from`, else nothing), and the arms it starts after when Ray
+    schedules them (`after`, by name: the transfer arm starts from its source's parameters)."""
 
     name: str
     given: dict[str, Any]
     initialize: Callable[[Any], Any] | None = None
+    after: tuple[str, ...] = ()
 
     @property
     def run_dir(self) -> str:
@@ -68,12 +73,24 @@ class Arm:
 
 def experiment_parser(prog: str, doc: str, runs: str) -> argparse.ArgumentParser:
     """The parser of an experiment `prog` (described by its module docstring `doc`) whose learner and
-    network options pass through to `runs` (`pass_through`)."""
-    return argparse.ArgumentParser(
+    network options pass through to `runs` (`pass_through`), with the options of how its runs train
+    (`add_training_options`)."""
+    parser = argparse.ArgumentParser(
         prog=prog, description=doc.split("\n\n")[0], allow_abbrev=False,
         epilog="Learner and network options of python -m experiments.run (e.g. --num-envs 16 --conv-channels 4) "
         f"and --checkpoint-every are passed to {runs}.",
     )
+    add_training_options(parser)
+    return parser
+
+
+def add_training_options(parser: argparse.ArgumentParser) -> None:
+    """How an experiment's runs train: `--fresh-buffer` and the Ray options (`cluster.add_options`)."""
+    parser.add_argument("--fresh-buffer", action="store_true",
+                        help="resume a run whose latest checkpoint lacks its replay buffer with an empty one (a "
+                        "deviation from the uninterrupted run, named below the table); without it such a run is "
+                        "refused")
+    cluster.add_options(parser)
 
 
 def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
@@ -218,7 +235,7 @@ def plan_line(arm: Arm, env) -> str:
     per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
     source = f", parameters from {run.init_from}" if run.init_from else ""
     state, step, why = status(arm, env.physics_id)
-    carried = " without its replay buffer" if state == "resume" and carried_without_buffer(arm) else ""
+    carried = " without its replay buffer" if state == "resume" and without_buffer(arm) else ""
     return (
         f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
         f"{run.epochs} epochs × {per_epoch:,} = {run.epochs * per_epoch:,} env steps per seed in {run.run_dir} "
@@ -231,38 +248,59 @@ def plan(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     return "\n".join(["plan:", *(f"{arm.name}: {plan_line(arm, envs[arm.name])}" for arm in arms)])
 
 
-def carried_without_buffer(arm: Arm) -> bool:
-    """Whether the run's latest checkpoint lacks its replay buffer (a run carried from another machine or process,
-    `experiments.carry`): training resumes it with an empty buffer, as `--resume --fresh-buffer` does."""
+def without_buffer(arm: Arm) -> bool:
+    """Whether the run's latest checkpoint lacks its replay buffer: training resumes it only with `--fresh-buffer`,
+    with an empty buffer, as `experiments.run --resume --fresh-buffer` does."""
     directory = os.path.join(arm.run_dir, "checkpoints")
     return checkpoint.latest_step(directory) is not None and not checkpoint.has_buffer(directory)
 
 
-def train_arm(arm: Arm, env, quiet: bool) -> None:
-    """Train one run to its epochs (resuming its latest checkpoint), or skip it when done. Stale runs are refused
-    before, by `train_arms`, for all its arms at once."""
+def train_arm(arm: Arm, env, quiet: bool, fresh_buffer: bool = False) -> None:
+    """Train one run to its epochs (resuming its latest checkpoint with its replay buffer), or skip it when done.
+    A checkpoint without its buffer is refused (CheckpointError) unless `fresh_buffer` resumes it with an empty
+    one. Stale runs are refused before, by `train_arms`, for all its arms at once."""
     state = status_at(latest(arm), arm.epochs)
     if state == "done":
         print(f"{arm.name}: done ({arm.run_dir}): its {arm.epochs} epochs finished, skipped")
         return
     resume = state == "resume"  # else a run stopped before its first checkpoint starts again
-    fresh_buffer = resume and carried_without_buffer(arm)
-    if fresh_buffer:
-        print(f"{arm.name}: its checkpoint was carried without its replay buffer: resuming with an empty one "
-              "(recorded in its config.json, named below the table)")
+    empty = resume and without_buffer(arm)
+    if empty and not fresh_buffer:
+        raise CheckpointError(f"{arm.run_dir}: its latest checkpoint has no replay buffer; --fresh-buffer resumes "
+                              "it with an empty one (a deviation from the uninterrupted run, named below the table)")
+    if empty:
+        print(f"{arm.name}: its checkpoint has no replay buffer: resuming with an empty one (--fresh-buffer; "
+              "recorded in its config.json, named below the table)")
     config, row = cli.start_run(arm.given, resume=resume, overwrite=not resume, quiet=quiet, env=env,
-                                initialize=arm.initialize, fresh_buffer=fresh_buffer)
+                                initialize=arm.initialize, fresh_buffer=empty)
     print(f"{arm.name}:", end=" ")
     cli.print_summary(config.run, row)
 
 
-def train_arms(arms: Sequence[Arm], envs: dict[str, Any], quiet: bool) -> int:
-    """Train the runs in order (`train_arm`) until one fails or is stopped; the exit code. A stale run among them
-    (`refuse_stale`) is refused before any trains: 2."""
+def train_cell(payload: tuple[Arm, bool]) -> int:
+    """A Ray task's run (`cluster.run_cells`): `train_arm` of the arm in `payload` (with its `fresh_buffer`) on an
+    env built in the worker, without progress bars (the driver prints the grid's table); its exit code."""
+    arm, fresh_buffer = payload
+    try:
+        train_arm(arm, envs_mjx.make(arm.given["env"], render=arm.config.agent.uses_image), True, fresh_buffer)
+    except cli.FAILURES as err:
+        return cli.exit_code(err)
+    return 0
+
+
+def train_arms(arms: Sequence[Arm], envs: dict[str, Any], args: argparse.Namespace) -> int:
+    """Train the runs (`args`: an experiment's `quiet`, `add_training_options`); the exit code. A stale run among
+    them (`refuse_stale`) is refused before any trains: 2. Without `--ray`, in order in this process (`train_arm`)
+    until one fails or is stopped; with it, each a cell of `cluster.run_cells`, all at once where the machine or
+    cluster has room, an arm after those of `arms` it names in `after`."""
     try:
         refuse_stale(arms, envs)
+        if cluster.wanted(args):
+            cells = [cluster.Cell(arm.name, arm.epochs, (arm, args.fresh_buffer),
+                                  functools.partial(cluster.epochs_done, arm.run_dir), arm.after) for arm in arms]
+            return cluster.run_cells(cells, train_cell, args)
         for arm in arms:
-            train_arm(arm, envs[arm.name], quiet)
+            train_arm(arm, envs[arm.name], args.quiet, args.fresh_buffer)
     except cli.FAILURES as err:
         return cli.exit_code(err)
     return 0

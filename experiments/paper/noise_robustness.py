@@ -25,7 +25,8 @@ Resumable: a finished agent is skipped, an interrupted one resumed from its late
 checkpoint, and a stale one (`grid.stale`: made on other physics or with another config) refused
 before any agent trains; the table and plot are made from whatever metrics exist. `--epochs`, `--agents`
 and the size options (`--num-envs` ...) allow a shorter or smaller run; the defaults are
-the nicol_slide preset's. The agents' runs are trained by `experiments/paper/grid.py` (as the
+the nicol_slide preset's; `--ray` trains the programs as cells of Ray tasks, all at once where the
+GPUs allow (`experiments/cluster.py`). The agents' runs are trained by `experiments/paper/grid.py` (as the
 transfer and curves experiments), so the exit codes are experiments.run's: 0 done; 2 bad
 option, config or checkpoint, or a run folder with a damaged file (one line naming it; the experiment stops on
 it); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143 stopped by SIGINT and SIGTERM.
@@ -44,7 +45,7 @@ import numpy as np
 import envs_mjx
 from bidal_jax.config import ConfigError, resolve
 from bidal_jax.run import multihost, rundir, runfiles
-from experiments import cli, report
+from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import (
@@ -196,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     mode.add_argument("--dry-run", action="store_true", help="print the plan (each program's state: new, resume, "
                       "done or stale); train and write nothing")
     parser.add_argument("--quiet", action="store_true")
+    grid.add_training_options(parser)
     return parser
 
 
@@ -214,6 +216,7 @@ def main(argv: list[str] | None = None) -> int:
             if os.path.isfile(os.path.join(args.out, agent, "metrics.csv")):
                 raise ConfigError(f"--kappas {args.kappas}: {os.path.join(args.out, agent)} already holds every κ "
                                   f"of {agent}; train them in another --out")
+        cluster.prepare_driver(args)
         multihost.initialize()
     except ConfigError as err:
         return cli.exit_code(err)
@@ -230,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         print(grid.DRY_RUN)
         return 0
     os.makedirs(args.out, exist_ok=True)
-    code = grid.train_arms(arms, envs, args.quiet)
+    code = grid.train_arms(arms, envs, args)
     if code:
         return code
     if multihost.is_main():  # one process writes the results, from every run folder in --out (other programs' too)

@@ -36,7 +36,8 @@ skipped, an interrupted one resumes from its latest checkpoint, one without a ch
 again, and a stale one (made on other physics or with another config) is refused before any run of
 `--arms` trains (`experiments/paper/grid.py`). Runs are driven in-process (`experiments/cli.py`: prepare,
 then train), in the order source, transfer, scratch, so that the transfer's checks run as early
-as they can. `--arms` trains
+as they can; `--ray` trains them as cells of Ray tasks (`experiments/cluster.py`), source and scratch
+at once, the transfer arm once its source has ended. `--arms` trains
 only the named runs: `--arms source` and `--arms scratch` can run as two processes at once (the
 scratch arm does not need the source), then `--arms transfer`, which refuses to start while its source is
 unfinished (`refuse_unfinished_source`); any of them writes the results
@@ -60,7 +61,7 @@ import numpy as np
 
 from bidal_jax.config import ConfigError, RunConfig, resolve
 from bidal_jax.run import multihost
-from experiments import cli, report, stats
+from experiments import cli, cluster, report, stats
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import AGENT, SOURCE_ENV, TARGET_ENV, THRESHOLDS, seed_measures
@@ -117,7 +118,8 @@ def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list
     arms = []
     for name, given, epochs in runs:
         given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
-        arms.append(Arm(name, {**given, "epochs": resolve(given).run.epochs}))
+        after = ("source",) if name == "transfer" and not args.source else ()  # under Ray: once the source ends
+        arms.append(Arm(name, {**given, "epochs": resolve(given).run.epochs}, after=after))
     return arms
 
 
@@ -256,6 +258,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     out = grid.out_dir(args, "transfer")
     try:
+        cluster.prepare_driver(args)
         multihost.initialize()
         train_names = parse_arms(args.arms)
         arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(args, extra, out))
@@ -274,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         grid.refuse_stale(source, envs)
         refuse_unfinished_source(arms, train_names)
-        code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args.quiet)
+        code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args)
     except ConfigError as err:
         code = cli.exit_code(err)
     variant = ", held starts" if args.held_starts else ""

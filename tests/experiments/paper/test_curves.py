@@ -126,15 +126,15 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     assert "| proprio_baseline | 0.533 ± 0.100 (last 3), 30 s* |" in (out / "table.md").read_text()  # seeds 0.43, 0.63
 
 
-def test_a_run_carried_without_its_buffer_resumes_with_an_empty_one(tmp_path, no_nicol, fake_run, monkeypatch,
-                                                                    capsys):
+def test_a_run_without_its_buffer_is_refused_unless_fresh_buffer_resumes_it_with_an_empty_one(
+        tmp_path, no_nicol, fake_run, monkeypatch, capsys):
     out = tmp_path / "out"
-    carried, kept = (str(out / "planar_reach" / a) for a in ("visual_baseline", "proprio_baseline"))
-    fake_run(carried, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline", buffer=False)  # experiments.carry's
+    bare, kept = (str(out / "planar_reach" / a) for a in ("visual_baseline", "proprio_baseline"))
+    fake_run(bare, "planar_reach", [(0.2, 0.2)], 1, agent="visual_baseline", buffer=False)  # its buffer deleted
     fake_run(kept, "planar_reach", [(0.2, 0.2)], 1, agent="proprio_baseline")
     assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert f"{carried} [resume, checkpoint at epoch 1 without its replay buffer]" in printed
+    assert f"{bare} [resume, checkpoint at epoch 1 without its replay buffer]" in printed
     assert f"{kept} [resume, checkpoint at epoch 1]" in printed
     fresh, train = [], loop.train  # no_nicol's
 
@@ -143,9 +143,13 @@ def test_a_run_carried_without_its_buffer_resumes_with_an_empty_one(tmp_path, no
         return train(env, config, **kwargs)
 
     monkeypatch.setattr(loop, "train", record)
-    assert curves.main([*SMALL, "--out", str(out)]) == 0
-    assert fresh[:2] == [(kept, False), (carried, True)]
-    assert "visual_baseline: its checkpoint was carried without its replay buffer: resuming with an empty one" in (
+    assert curves.main([*SMALL, "--out", str(out)]) == 2  # the default path never drops a buffer
+    assert fresh == [(kept, False)]
+    assert f"error: {bare}: its latest checkpoint has no replay buffer; --fresh-buffer resumes it" in (
+        capsys.readouterr().err)
+    assert curves.main([*SMALL, "--out", str(out), "--fresh-buffer"]) == 0
+    assert (bare, True) in fresh and fresh.count((kept, False)) == 2
+    assert "visual_baseline: its checkpoint has no replay buffer: resuming with an empty one (--fresh-buffer" in (
         capsys.readouterr().out)
 
 
