@@ -30,6 +30,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import shutil
 import time
 
@@ -64,7 +65,8 @@ def parse_variant(text: str) -> tuple[dict, dict, dict]:
     if text == "preset":
         return train, network, options
     groups = {"": (TrainConfig, train), "net.": (NetworkConfig, network)}
-    for item in text.split(","):
+    for item in re.split(r",(?=[A-Za-z_.]+=)", text):  # a comma starts an item only before NAME=, so values
+        # may hold commas (net.conv_strides=2,2,1,1)
         name, _, value = item.partition("=")
         if name.startswith("opt."):
             options[name[4:]] = value  # converted and checked by Env.set_options

@@ -6,11 +6,9 @@ how many output pixels each task-relevant body covers (rays on the body over ray
 body seen by half the rays of 6 pixels covers 3) in the states a task passes through:
 
 - NICOL (nicol_slide, nicol_lift): the cube, the goal marker and the hand (palm, fingers, thumb),
-  over episodes of the scripted grasp controller (`experiments.probes.grasping`) and of a scripted
-  push, with Gaussian action noise. Frames are sorted into phases by the true state:
-  `start` (the first frame), `approach` (hand 5-20 cm from the cube, cube on the table),
-  `contact` (hand within 5 cm of the cube, cube on the table: a push or a grasp under way) and
-  `held` (the cube lifted off the table within 4 cm of the closed hand).
+  in the scripted episodes of `experiments.probes.phases` (grasps, pushes and carries from the held
+  start), sorted by the true state into `start`, `approach`, `contact` (the hand at the cube) and
+  `held` (the cube lifted in the closed hand).
 - reaching (planar_reach, ur5_reach): the arm's links and the goal marker(s), at start states and
   after random actions.
 
@@ -25,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -34,19 +31,14 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax.config import ConfigError
-from envs_mjx.base import Env, State
-from envs_mjx.nicol import CUBE_HALF, MAX_MOVE, TABLE_HEIGHT, NicolEnv
+from envs_mjx.base import Env
+from envs_mjx.nicol import NicolEnv
 from experiments import cli
-from experiments.probes.grasping import HELD, grasp_policy
+from experiments.probes.phases import PHASES_NICOL, SCRIPT_NOISE, nicol_rollouts
 
 PROG = "python -m experiments.probes.visibility"
 VISIBLE_PX = 3.0  # pixels a body must cover to count as seen
-CONTACT = 0.05  # m, hand to cube
-APPROACH = 0.20  # m
-LIFTED = 0.01  # m above resting on the table
-PUSH_BEHIND = 0.06  # m behind the cube (seen from the goal) where the push starts
 RANDOM_STEPS = 10  # random actions before a reaching frame of the `moving` phase
-SCRIPT_NOISE = 0.3  # std of the Gaussian noise on the scripted actions (spreads the states)
 
 
 def subtree_geoms(mj_model: mujoco.MjModel, body: str) -> tuple[int, ...]:
@@ -77,56 +69,6 @@ def coverage(env: Env, groups: dict[str, tuple[int, ...]], data) -> jax.Array:
     return rays / env.camera.supersample**2
 
 
-def push_policy(obs: dict, spec) -> jax.Array:
-    """A scripted push: go behind the cube (seen from the goal) at its height, then push it to the goal."""
-    ee, obj = obs["proprio"][spec.segment_slice("ee_pos")], obs["proprio"][spec.segment_slice("obj_pos")]
-    heading = obs["desired_goal"][:2] - obj[:2]
-    heading = heading / jnp.maximum(jnp.linalg.norm(heading), 1e-6)
-    behind = obj.at[:2].add(-PUSH_BEHIND * heading)
-    ready = jnp.linalg.norm(ee[:2] - behind[:2]) < 0.02
-    hover = behind.at[2].add(0.08)
-    target = jnp.where(ready | (ee[2] < obj[2] + 0.03), behind, hover)
-    target = jnp.where(ready, obs["desired_goal"].at[2].set(obj[2]), target)
-    move = jnp.clip((target - ee) / MAX_MOVE, -1.0, 1.0)
-    return jnp.concatenate([move, jnp.zeros(2), jnp.array([-1.0, -1.0])])
-
-
-def nicol_rollouts(env: NicolEnv, episodes: int, noise: float, key: jax.Array,
-                   record: Callable[[State], Any]) -> tuple[Any, np.ndarray]:
-    """(`record(state)` of every state [N, ...], its phase [N]: an index into `PHASES_NICOL`, or -1) over
-    `episodes` scripted episodes, grasps and pushes alternately, with Gaussian action noise of std `noise`."""
-    spec = env.observation_spec
-    policies = [lambda o: grasp_policy(o, spec), lambda o: push_policy(o, spec)]
-
-    def episode(key, scripted):
-        key_reset, key_noise = jax.random.split(key)
-
-        def step(state, key):
-            action = jax.lax.switch(scripted, policies, state.obs) + noise * jax.random.normal(key, (env.action_size,))
-            out = (record(state), state.obs["proprio"], state.info["step"])
-            return env.step(state, jnp.clip(action, -1.0, 1.0)), out
-
-        return jax.lax.scan(step, env.reset(key_reset), jax.random.split(key_noise, env.episode_length))[1]
-
-    records, proprio, step = jax.jit(jax.vmap(episode))(jax.random.split(key, episodes), jnp.arange(episodes) % 2)
-    records, proprio, step = jax.tree.map(lambda x: np.asarray(x).reshape(-1, *x.shape[2:]), (records, proprio, step))
-    return records, nicol_phase(spec, proprio, step)
-
-
-def nicol_phase(spec, proprio: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """The phase of each state (`PHASES_NICOL` index, -1 for none) from its true proprio [N, D] and step [N]."""
-    ee, obj = proprio[:, spec.segment_slice("ee_pos")], proprio[:, spec.segment_slice("obj_pos")]
-    closure = proprio[:, spec.segment_slice("q")][:, 6]
-    dist = np.linalg.norm(obj - ee, axis=-1)
-    lifted = obj[:, 2] > TABLE_HEIGHT + CUBE_HALF + LIFTED
-    phase = np.full(len(step), -1)
-    phase[(step > 0) & ~lifted & (dist >= CONTACT) & (dist < APPROACH)] = 1
-    phase[(step > 0) & ~lifted & (dist < CONTACT)] = 2
-    phase[lifted & (dist < HELD) & (closure > 1.0)] = 3
-    phase[step == 0] = 0
-    return phase
-
-
 def reach_frames(env: Env, groups, episodes: int, key: jax.Array) -> tuple[np.ndarray, np.ndarray]:
     """(coverage, phase) at start states (phase 0) and after `RANDOM_STEPS` random actions (phase 1)."""
 
@@ -142,7 +84,6 @@ def reach_frames(env: Env, groups, episodes: int, key: jax.Array) -> tuple[np.nd
     return cov.reshape(-1, cov.shape[-1]), np.tile([0, 1], episodes)
 
 
-PHASES_NICOL = ("start", "approach", "contact", "held")
 PHASES_REACH = ("start", "moving")
 
 

@@ -21,8 +21,8 @@ workspace:
 
     python -m experiments.probes.vision --envs nicol_slide --target ee_pos --random-steps 10
 
-`--phase contact` (NICOL) takes the frames instead from the visibility probe's scripted grasp and push
-episodes where the hand is at the cube, the frames a hidden cube would spoil:
+`--phase contact` (NICOL) takes the frames instead from scripted grasp and push episodes
+(`experiments.probes.phases`) where the hand is at the cube, the frames a hidden cube would spoil:
 
     python -m experiments.probes.vision --envs nicol_slide --phase contact
 
@@ -54,7 +54,7 @@ from bidal_jax.networks import VisionBranch
 from bidal_jax.run import validate
 from envs_mjx.nicol import NicolEnv
 from experiments import cli
-from experiments.probes import visibility
+from experiments.probes import phases
 
 PROG = "python -m experiments.probes.vision"
 HELD_OUT = 0.2  # share of the frames the probe is tested on
@@ -95,8 +95,8 @@ def frames(env, key: jax.Array, n: int, random_steps: int = 0,
 
 
 def phase_frames(env, key: jax.Array, n: int, phase: str, target: str = ACHIEVED_GOAL) -> tuple[np.ndarray, np.ndarray]:
-    """(images, targets) of at most `n` NICOL frames in `phase` of the visibility probe's scripted episodes
-    (`experiments.probes.visibility`: e.g. `contact`, the hand at the cube), in random order."""
+    """(images, targets) of at most `n` NICOL frames in `phase` of the scripted episodes
+    (`experiments.probes.phases`: e.g. `contact`, the hand at the cube), in random order."""
     spec = env.observation_spec
 
     def record(state):
@@ -106,10 +106,10 @@ def phase_frames(env, key: jax.Array, n: int, phase: str, target: str = ACHIEVED
 
     key_episodes, key_order = jax.random.split(key)
     episodes = -(-n // PHASE_FRAMES_PER_EPISODE)
-    chunks = [visibility.nicol_rollouts(env, min(FRAME_CHUNK, episodes - i), visibility.SCRIPT_NOISE,
+    chunks = [phases.nicol_rollouts(env, min(FRAME_CHUNK, episodes - i), phases.SCRIPT_NOISE,
                                         jax.random.fold_in(key_episodes, i), record)
               for i in range(0, episodes, FRAME_CHUNK)]
-    keep = [np.flatnonzero(ph == visibility.PHASES_NICOL.index(phase)) for _, ph in chunks]
+    keep = [np.flatnonzero(ph == phases.PHASES_NICOL.index(phase)) for _, ph in chunks]
     images = np.concatenate([imgs[k] for ((imgs, _), _), k in zip(chunks, keep)])
     labels = np.concatenate([lab[k] for ((_, lab), _), k in zip(chunks, keep)])
     order = np.asarray(jax.random.permutation(key_order, len(images)))[:n]
@@ -188,8 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="uniformly random actions from each start state before its frame (default 0: start states)",
     )
     parser.add_argument(
-        "--phase", default="", choices=("",) + visibility.PHASES_NICOL,
-        help="NICOL only: frames of this phase of scripted grasp and push episodes (experiments.probes.visibility; "
+        "--phase", default="", choices=("",) + phases.PHASES_NICOL,
+        help="NICOL only: frames of this phase of scripted grasp and push episodes (experiments.probes.phases; "
              "e.g. contact: the hand at the cube) instead of start states",
     )
     parser.add_argument("--out", default="", help="also write the table to this file")
