@@ -71,9 +71,10 @@ class NetworkConfig:
 
     conv_channels: int = doc(16, "channels of each of the four conv layers of the vision branch", POSITIVE_INT)
     conv_strides: str = doc(
-        "3,2,2,2",
+        "3,2,2,1",
         "strides of the vision branch's four 3×3 conv layers, comma-separated (the first unpadded, the others "
-        "'same'-padded): 3,2,2,2 maps 42×42 to 14, 7, 4, 2; 2,2,1,1 to 20, 10, 10, 10",
+        "'same'-padded): 3,2,2,1 maps 42×42 to 14, 7, 4, 4 (a 4×4 map: where things are survives; 3,2,2,2 "
+        "ends at 2×2; docs/deviations.md); 2,2,1,1 to 20, 10, 10, 10",
         Rule(str, _strides, "four comma-separated positive integers, e.g. 3,2,2,2"),
     )
     conv_impl: str = doc(
@@ -146,7 +147,8 @@ class TrainConfig:
         Rule(int, lambda v: v >= 0, "an integer >= 0"),
     )
     intrinsic_lambda: float = doc(
-        0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4)",
+        1.0, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4); the paper leaves it open: 1 makes "
+        "|r_i| about a third of |r_e| on nicol_slide (docs/deviations.md, the λ sweep)",
         NON_NEGATIVE,
     )
     forward_weight: float = doc(
