@@ -109,10 +109,9 @@ def phase_frames(env, key: jax.Array, n: int, phase: str, target: str = ACHIEVED
     chunks = [phases.nicol_rollouts(env, min(FRAME_CHUNK, episodes - i), phases.SCRIPT_NOISE,
                                         jax.random.fold_in(key_episodes, i), record)
               for i in range(0, episodes, FRAME_CHUNK)]
-    keep = [np.flatnonzero(ph == phases.PHASES_NICOL.index(phase)) for _, ph in chunks]
-    images = np.concatenate([imgs[k] for ((imgs, _), _), k in zip(chunks, keep)])
-    labels = np.concatenate([lab[k] for ((_, lab), _), k in zip(chunks, keep)])
-    order = np.asarray(jax.random.permutation(key_order, len(images)))[:n]
+    (images, labels), phase_of = jax.tree.map(lambda *parts: np.concatenate(parts), *chunks)
+    keep = np.flatnonzero(phase_of == phases.PHASES_NICOL.index(phase))
+    order = keep[np.asarray(jax.random.permutation(key_order, len(keep)))[:n]]
     return images[order], labels[order]
 
 
