@@ -10,7 +10,8 @@ a machine: `--gpus-per-cell` GPUs (1 by default; a fraction, e.g. 0.5, lets cell
 - A worker that dies (a node lost, the process killed) has its cell retried, up to `--retries` times: a run folder
   resumes from its own latest checkpoint with its replay buffer, as running the experiment again does.
 - Progress: every `--progress-every` seconds a table of the cells with their epochs done (each cell's metrics.csv
-  through `report.load_run`, or the `progress` its caller reads) and an ETA, the grid's from its pace so far.
+  through `report.load_run`, or the `progress` its caller reads) and an ETA, the grid's from its pace so far. As
+  each cell ends, the seconds it took in its worker; at the end, the grid's wall time against their sum.
 - Each worker process trains one cell and exits (`max_calls=1`), so that the GPU Ray gives it is the one its JAX
   sees and its memory goes back when the cell ends; a cell given a fraction of a GPU lets JAX take that fraction
   of the GPU's memory (`XLA_PYTHON_CLIENT_MEM_FRACTION`, where its default takes 75 %). Workers import this
@@ -151,11 +152,24 @@ def progress_table(cells: Sequence[Cell], done: dict[str, int], states: dict[str
     ])
 
 
-def run_cell(work: Callable[[Any], int], payload: Any, *upstream: int) -> int:
-    """A cell's task: `work(payload)`'s exit code, or, without running it, the first nonzero code of the cells it
-    comes `after` (`upstream`)."""
-    failed = next((code for code in upstream if code), 0)
-    return failed or work(payload)
+def run_cell(work: Callable[[Any], int], payload: Any, *upstream: tuple[int, float]) -> tuple[int, float]:
+    """A cell's task: (`work(payload)`'s exit code, the seconds it took in the worker), or, without running it,
+    (the first nonzero code of the cells it comes `after`, 0.0) (`upstream`: their results)."""
+    failed = next((code for code, _ in upstream if code), 0)
+    if failed:
+        return failed, 0.0
+    began = time.perf_counter()
+    code = work(payload)
+    return code, time.perf_counter() - began
+
+
+def efficiency_line(seconds: dict[str, float], wall: float) -> str:
+    """The grid's wall time against the sum of its cells' own times (what running them one after another in
+    one process would about take): how much running them at once saved."""
+    total = sum(seconds.values())
+    ratio = f"{wall / total:.2f}×" if total > 0 else "—"
+    return (f"grid: {wall:.0f} s of wall time for {len(seconds)} cell(s) taking {total:.0f} s together "
+            f"(wall / sum: {ratio})")
 
 
 def import_ray():
@@ -200,29 +214,33 @@ def _drive(ray, cells: Sequence[Cell], work: Callable[[Any], int], args: argpars
     start = {c.name: c.progress() for c in cells}
     states = dict.fromkeys(refs, "queued or training")
     codes: dict[str, int] = {}
+    seconds: dict[str, float] = {}
     began = shown = time.time()
     pending = list(refs.values())
     while pending:
         ready, pending = ray.wait(pending, num_returns=1, timeout=max(shown + args.progress_every - time.time(), 0))
         for ref in ready:
             name = names[ref]
-            codes[name], states[name] = _result(ray, ref, args.retries)
-            print(f"{name}: {states[name]}", flush=True)
+            codes[name], states[name], took = _result(ray, ref, args.retries)
+            if took:
+                seconds[name] = took
+            print(f"{name}: {states[name]}" + (f" in {took:.0f} s" if took else ""), flush=True)
         if not pending or time.time() >= shown + args.progress_every:
             shown = time.time()
             done = {c.name: c.progress() for c in cells}
             print(progress_table(cells, done, states, shown - began, start), flush=True)
+    print(efficiency_line(seconds, time.time() - began), flush=True)
     return next((codes[c.name] for c in cells if codes[c.name]), 0)
 
 
-def _result(ray, ref, retries: int) -> tuple[int, str]:
-    """(exit code, state) of a cell's ended task: its code, or `EXIT_LOST` when its worker died once more than
-    `retries` allow (one `error:` line)."""
+def _result(ray, ref, retries: int) -> tuple[int, str, float]:
+    """(exit code, state, seconds its last attempt took) of a cell's ended task: its code, or `EXIT_LOST` (and 0
+    seconds) when its worker died once more than `retries` allow (one `error:` line)."""
     try:
-        code = ray.get(ref)
+        code, took = ray.get(ref)
     except ray.exceptions.RayError as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         print(f"error: a cell's worker died {retries + 1} time(s) ({first}); run the command again to resume it "
               "from its latest checkpoint", file=sys.stderr)
-        return EXIT_LOST, f"lost (exit {EXIT_LOST})"
-    return code, "done" if code == 0 else f"failed (exit {code})"
+        return EXIT_LOST, f"lost (exit {EXIT_LOST})", 0.0
+    return code, "done" if code == 0 else f"failed (exit {code})", took

@@ -3,8 +3,11 @@ and a cell whose worker is killed mid-run is retried, resumes from its checkpoin
 with every epoch's row exactly once; the progress table and the option checks without Ray."""
 
 import argparse
+import contextlib
+import io
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -57,17 +60,23 @@ def filled(local_ray, tmp_path_factory):
     """A 2-cell grid (two seeds of a tiny planar_reach run) trained through Ray: its arms and exit code."""
     out = tmp_path_factory.mktemp("grid")
     arms = [arm(out / "a", 0), arm(out / "b", 1)]
-    return arms, grid.train_arms(arms, grid.make_envs(arms), ray_args())
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = grid.train_arms(arms, grid.make_envs(arms), ray_args())
+    return arms, code, printed.getvalue()
 
 
 @pytest.mark.slow
-def test_a_two_cell_grid_fills_both_run_folders(filled, capsys):
-    arms, code = filled
+def test_a_two_cell_grid_fills_both_run_folders(filled):
+    arms, code, printed = filled
     assert code == 0
     for a in arms:
         assert epochs(a.run_dir) == list(range(1, EPOCHS + 1))
         assert grid.latest(a) == EPOCHS and grid.loaded(a.run_dir)["config"]["fresh_buffer_epochs"] == []
     assert rows(arms[0].run_dir) != rows(arms[1].run_dir)  # two cells, not one run twice
+    assert len(re.findall(r"^planar_reach/seed\d: done in \d+ s$", printed, re.M)) == 2
+    assert re.search(r"^grid: \d+ s of wall time for 2 cell\(s\) taking \d+ s together \(wall / sum: "
+                     r"\d+\.\d\d×\)$", printed, re.M)
 
 
 def train_paused_once(payload) -> int:
@@ -153,6 +162,19 @@ def test_progress_table_gives_each_cells_epochs_and_the_etas_from_the_pace_so_fa
     assert lines[5] == "grid: 14 of 30 epochs after 2.0 min; ETA 2.3 min"
     unknown = cluster.progress_table(cells, dict.fromkeys("abc", 1), states, 5.0, dict.fromkeys("abc", 1))
     assert unknown.splitlines()[-1] == "grid: 3 of 30 epochs after 5 s; ETA —"
+
+
+def test_the_grid_reports_its_wall_time_against_its_cells_summed_time():
+    line = cluster.efficiency_line({"a": 300.0, "b": 100.0}, 220.0)
+    assert line == "grid: 220 s of wall time for 2 cell(s) taking 400 s together (wall / sum: 0.55×)"
+    assert cluster.efficiency_line({}, 3.0).endswith("(wall / sum: —)")
+
+
+def test_a_cell_after_a_failed_one_does_not_run():
+    ran = []
+    assert cluster.run_cell(ran.append, "x", (0, 5.0), (2, 1.0)) == (2, 0.0) and ran == []
+    code, took = cluster.run_cell(lambda payload: 0, "x", (0, 5.0))
+    assert code == 0 and took >= 0.0
 
 
 @pytest.mark.parametrize("option, value, expected", [
