@@ -53,6 +53,7 @@ def _name_list(v: str) -> bool:
 
 
 CONV_IMPLS = ("patch", "native")  # NetworkConfig.conv_impl
+INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
 POSITIVE_INT = Rule(int, lambda v: v >= 1, "a positive integer")
 POSITIVE = Rule(float, lambda v: v > 0, "a positive number")
@@ -197,6 +198,13 @@ class RunConfig:
         "fresh); the encoder brings its normalisers, its proprio rows matched by segment name",
         Rule(str, _name_list, "comma-separated network names without repeats, e.g. encoder,forward,inverse"),
     )
+    init_normaliser: str = doc(
+        "fresh",
+        "the proprio normaliser of a run started by --init-from: fresh (zero counts: the statistics of this run's "
+        "task alone, the encoder's weights still the source's) or inherit (the source's statistics and counts, "
+        "its rows matched by segment name, continued here; docs/deviations.md, Transfer normaliser)",
+        Rule(str, lambda v: v in INIT_NORMALISERS, f"one of {', '.join(INIT_NORMALISERS)}"),
+    )
 
 
 def fields_help(cls: type) -> dict[str, str]:
@@ -272,12 +280,21 @@ class Config:
 
     @classmethod
     def from_dict(cls, cfg: dict, where: str) -> Config:
-        """The inverse of `to_dict`; fields newer than `cfg` take their defaults. Raises
+        """The inverse of `to_dict`; fields newer than `cfg` take what a run without them did (`recorded`). Raises
         ConfigFormatError naming `where` for a dict that is not such a config."""
         try:
-            return cls(**{name: group(**cfg[name]) for name, group in CONFIG_CLASSES.items()})
+            return cls(**{name: group(**recorded(name, cfg[name])) for name, group in CONFIG_CLASSES.items()})
         except (KeyError, TypeError) as err:
             raise ConfigFormatError(f"{where} has a config this version cannot read ({err})") from err
+
+
+def recorded(group: str, fields: Any) -> Any:
+    """A config group's `fields` as a run recorded them (config.json), with the fields it is older than that its
+    run did otherwise than their default says: a transfer run (`init_from`) older than `init_normaliser` inherited
+    its source's proprio normaliser. Other fields newer than the record take their defaults, as they did."""
+    if group == "run" and isinstance(fields, dict) and fields.get("init_from") and "init_normaliser" not in fields:
+        return {**fields, "init_normaliser": "inherit"}
+    return fields
 
 
 def resolve(given: dict[str, Any]) -> Config:

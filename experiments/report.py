@@ -38,6 +38,7 @@ from bidal_jax.run import runfiles
 
 X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
 SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
+AIR = "eval_success_air"  # nicol_lift's success over its air goals alone (`Env.goal_subsets`)
 WITH_COMPILE = "wall_time_with_compile"
 
 
@@ -72,8 +73,9 @@ def load_run(run_dir: str) -> dict:
     Keys: "dir", "name" (basename), "config" (the parsed config.json; `physics_of` reads its physics), "env", "agent",
     "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
     "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
-    success of each seed). Raises NotARun (a folder without a run with epochs yet) or RunError (a damaged
-    file), naming the path.
+    success of each seed), "success_air" [E, S] (each seed's success over air goals, `AIR`; None for a task
+    without them or a run older than that column). Raises NotARun (a folder without a run with epochs yet) or
+    RunError (a damaged file), naming the path.
     """
     config_path, metrics_path = os.path.join(run_dir, "config.json"), os.path.join(run_dir, "metrics.csv")
     config, rows = _read(run_dir, config_path, metrics_path)
@@ -91,12 +93,15 @@ def load_run(run_dir: str) -> dict:
         epoch, wall = _column(metrics_path, rows, "epoch"), _column(metrics_path, rows, "wall_time")
         with_compile = _column(metrics_path, rows, WITH_COMPILE) if WITH_COMPILE in rows[0] else None
         steps = _column(metrics_path, rows, "env_steps_total") / seeds
+        air_columns = [f"{AIR}_seed{i}" for i in range(seeds)]
+        air = np.stack([_column(metrics_path, rows, k) for k in air_columns], axis=1) \
+            if all(k in rows[0] for k in air_columns) else None
     except runfiles.RunFileError as err:
         raise RunError(str(err)) from None
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
         "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
-        WITH_COMPILE: with_compile, "success": success,
+        WITH_COMPILE: with_compile, "success": success, "success_air": air,
     }
 
 

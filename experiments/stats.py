@@ -1,6 +1,7 @@
 """95 % intervals over seeds for the experiments' tables: a Student-t interval of a mean (Wilson's score
 interval for one seed's success rate), and for the difference of two arms' means (A − B) a percentile
-bootstrap over seeds and Welch's t interval.
+bootstrap over seeds and Welch's t interval; for two fractions of seeds (e.g. the seeds that lift), Fisher's
+exact test.
 
 The paper (Sec. IV) reports means and standard deviations over runs without intervals; these say how
 far our few seeds (5 a run) pin a figure or a difference down. All are pure functions of their inputs:
@@ -101,6 +102,16 @@ def welch_interval(a: np.ndarray, b: np.ndarray) -> tuple[float, float, float]:
             warnings.filterwarnings("ignore", "Precision loss occurred", RuntimeWarning)
         low, high = stats.ttest_ind(a, b, equal_var=False).confidence_interval(LEVEL)
     return point, float(low), float(high)
+
+
+def fisher_p(hits_a: int, n_a: int, hits_b: int, n_b: int) -> float:
+    """Two-sided p-value of Fisher's exact test that two arms' success fractions (hits of n, e.g. seeds that
+    learn a skill) are equal: exact for the few seeds of a run, where a normal approximation is not."""
+    from scipy import stats
+
+    if not (0 <= hits_a <= n_a and 0 <= hits_b <= n_b and min(n_a, n_b) >= 1):
+        raise ValueError(f"fisher_p: expected 0 <= hits <= n and n >= 1, got {hits_a}/{n_a} and {hits_b}/{n_b}")
+    return float(stats.fisher_exact([[hits_a, n_a - hits_a], [hits_b, n_b - hits_b]]).pvalue)
 
 
 def interval_text(low: float, high: float, digits: int = 3) -> str:

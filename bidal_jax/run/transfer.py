@@ -14,17 +14,21 @@ checkpoint whose buffer files were deleted still serves):
 - the named subtrees, into both the online and the target networks (a fresh run's
   targets equal its online networks); all other networks keep their fresh
   initialisation and every optimiser starts fresh (Adam moments zero, step 0);
-- with an encoder that reads proprio, the proprio normaliser it was trained with
-  (count, mean, M2, std), whose running statistics then continue from the
-  source's counts. The goal normaliser is not carried: goals reach only the actor and
-  critic (UVFA's η), which start fresh, and the goal distributions differ (sliding's
-  goals lie on the table, lifting's 5-25 cm above it: sliding's height spread, at the
-  normaliser's floor, would clip every lift goal);
+- the proprio normaliser only with `init_normaliser` "inherit": then, with an encoder
+  that reads proprio, the statistics it was trained with (count, mean, M2, std), whose
+  running statistics continue from the source's counts. By default ("fresh") the run's
+  proprio normaliser starts afresh (zero counts): it measures the target task's own
+  observations from its first rollout, where the source's counts (millions of slide
+  steps) would hold its mean and std near sliding's for the whole run, while the
+  encoder's weights still come from the source. The goal normaliser is never carried:
+  goals reach only the actor and critic (UVFA's η), which start fresh, and the goal
+  distributions differ (sliding's goals lie on the table, lifting's 5-25 cm above it:
+  sliding's height spread, at the normaliser's floor, would clip every lift goal);
 - the layer whose rows are the proprio features (the family's `proprio_kernel`, DDPG's
   encoder's proprio layer) maps its input rows by segment name: the target's proprio
   segments must be a subset of the source's (same names and sizes, any order) and the
   target row of a feature is the source row of that feature.
-  The proprio normaliser's per-feature statistics are mapped alike.
+  An inherited proprio normaliser's per-feature statistics are mapped alike.
 
 Seeds: seed i of the new run starts from seed i of the source, so that S seeds of a
 transfer experiment are S independent replications of pre-training and transfer; the
@@ -174,7 +178,8 @@ def plan(run: RunConfig, target: Any, segments: Segments, make_env: Callable[...
                 f"{where}: the source's proprio has {saved_size} features, env {source.env}'s segments now "
                 f"{env_size}: the env changed since the source was trained"
             )
-        wanted["proprio_norm"], receiving["proprio_norm"] = saved["proprio_norm"], target.proprio_norm
+        if run.init_normaliser == "inherit":
+            wanted["proprio_norm"], receiving["proprio_norm"] = saved["proprio_norm"], target.proprio_norm
     _compare(where, wanted, receiving, rows, mapped)
     return Plan(directory, step, parts, wanted, rows, seeds, mapped)
 

@@ -3,10 +3,24 @@
     python -m experiments.paper.claims --curves results/curves --noise results/noise --transfer results/transfer
         --out results/claims.md [--readme docs/reproduction.md] [--stale TASK[,TASK]] [--last-n 10]
 
-(a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline
-    none; multimodal BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
-    experiments/paper/curves.py): each run's final success, the mean over seeds of each seed's last `--last-n`
-    epochs; a run has learned a task when it is at least LEARNED.
+(a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline none; multimodal
+    BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
+    experiments/paper/curves.py), per seed: its final success (the mean of its last `--last-n` epochs), its
+    normalised AUC (its mean success over all epochs: learning speed over the whole budget) and its env steps to
+    0.5 and to 0.9 success (the first epoch its success reaches the threshold; a seed that never does counts the
+    run's last env steps, its budget, and is named censored: its steps are understated, so a difference against
+    its arm is understated, never overstated). On nicol_lift every figure is the success over air goals alone
+    (metrics.csv's `eval_success_air`: a policy that slides but never lifts scores 0.5625 overall and 0.125
+    there); a run without that column (older than it) is judged on its overall success and named in the rule.
+    Checks: a run has learned a task when its final success (mean over seeds) is at least LEARNED; multimodal
+    BidAL against the best other agent in each measure (final success, AUC, env steps to 0.5, to 0.9): each a
+    bootstrap interval over seeds of the difference, over the mean over tasks for "best overall" (env steps as a
+    share of each run's budget, so that tasks of other lengths weigh alike) and on nicol_lift for "most clearly on
+    lifting" (env steps as they are), where also its final-success margin must be larger than on every other task;
+    and the seeds that lift (final success over air goals ≥ LIFTS; without the column overall ≥ LIFTS_OVERALL,
+    which implies it when half the goals lie in the air), k of n per agent with Wilson intervals, multimodal
+    BidAL's against the other agent's with the largest share by Fisher's exact test (two-sided; favours or against
+    when p < ALPHA, by the side, else unclear).
 (b) Noise (Sec. IV-B, Table II): at κ = 10 and 15 % multimodal BidAL's success is steadier (each run's
     std over the last N epochs, the mean over runs) and higher (the mean over runs of each run's last-N
     mean) than both baselines'. From `--noise` (experiments/paper/noise_robustness.py).
@@ -14,19 +28,24 @@
     from scratch: fewer env steps to 0.5 success, larger AUC (per seed, experiments/paper/transfer_learning.py). From
     `--transfer`.
 
-Verdicts. Each claim is a list of checks, each of which favours the claim, is against it, or is unclear.
-A comparison's check is its 95 % bootstrap interval over seeds (`stats.bootstrap_difference`): favours
-when the interval lies on the claimed side of 0, against when on the other, else unclear; a threshold's
-check favours or is against. "reproduced": every check favours; "reversed": none favours and one is
-against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer
-epochs than its budget: the curves grid's epochs per task, or the env and agent preset's for the noise
-and transfer runs, or its config's if more), its figures still shown. Runs made on other physics than
-the task's model today (config.json records the fingerprints of the physics a run trained on,
-`envs_mjx.base.Env.physics_id`; runs older than that record none), and runs of a task named by `--stale`,
-get their verdict qualified "measured on ... runs not recorded on today's physics".
+Verdicts. Each claim is a list of checks, each of which favours the claim, is against it, or is unclear. A
+comparison's check is its 95 % bootstrap interval over seeds (`stats.bootstrap_difference`): favours when the
+interval lies on the claimed side of 0, against when on the other, else unclear; a threshold's check favours or is
+against; Fisher's exact test as in (a). "reproduced": every check favours; "reversed": none favours and one is
+against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer epochs than
+its budget: the curves grid's epochs per task, or the env and agent preset's for the noise and transfer runs, or its
+config's if more), its figures still shown. Runs made on other physics than the task's model today (config.json
+records the fingerprints of the physics a run trained on, `envs_mjx.base.Env.physics_id`; runs older than that
+record none), and runs of a task named by `--stale`, get their verdict qualified "measured on ... runs not recorded
+on today's physics".
 
 Time: the file ends with what the runs on today's physics took, per experiment and per machine (config.json's
 "hardware"; "not recorded" for runs older than that record): the sum of each run's last `wall_time_with_compile`.
+
+The previous table: the section of `--out` from its line `## On the earlier tasks` to its end is kept when the
+file is written again, so that the claims as judged on the earlier tasks' runs stay beside today's for
+comparison; `--previous FILE` (a claims file this command wrote, e.g. `git show REV:results/claims.md`) starts
+that section anew from FILE's table, its rules, notes and command, FILE's own earlier section left out.
 
 `--readme FILE` also writes the table (without the rules), the time and the command into FILE, replacing the
 text from its line `README_START` to its line `README_END`; a FILE without them is refused.
@@ -60,9 +79,17 @@ OURS, VISUAL, LIFT = "multimodal_bidal", "visual_baseline", "nicol_lift"
 NOISE_KAPPAS = (0.10, 0.15)
 BASELINES = ("multimodal_baseline", "proprio_baseline")
 FAVOURS, AGAINST, UNCLEAR = "favours", "against", "unclear"
+SPEED = (0.5, 0.9)  # success thresholds of claim (a)'s learning speed
+FINAL, AUC = "final success", "AUC"
+STEPS_TO = "env steps to {:g}"
+MEASURES = (FINAL, AUC, *(STEPS_TO.format(t) for t in SPEED))
+LIFTS = 0.5  # a seed lifts when its final success over air goals is at least this
+LIFTS_OVERALL = 0.75  # the same on overall success, for runs without air goals' success: air ≥ 2·overall − 1
+ALPHA = 0.05  # Fisher's exact test: the p below which a difference of lifting seeds counts
 NOT_MEASURED = "not measured"
 README_START = "<!-- claims: written by experiments.paper.claims --readme; edits up to the end mark are lost -->"
 README_END = "<!-- end of claims -->"
+PREVIOUS = "## On the earlier tasks"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,9 +155,48 @@ def load_grid(curves_dir: str) -> dict[tuple[str, str], dict | None]:
     return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in protocol.TASKS for a in AGENTS}
 
 
-def finals(runs: dict[tuple[str, str], dict | None], last_n: int) -> dict[tuple[str, str], np.ndarray]:
-    """(task, agent) -> each seed's final success [S] (`report.final_per_seed`), for the runs that exist."""
-    return {key: report.final_per_seed(report.curves([run])[0], last_n) for key, run in runs.items() if run}
+def judged_curve(run: dict) -> tuple[report.Curve, bool]:
+    """(The curve claim (a) judges a run by, whether it is a nicol_lift run judged on its overall success for want
+    of `report.AIR`): on nicol_lift each seed's success over air goals alone (a policy that slides but never lifts
+    scores 0.5625 overall and 0.125 there, `never_lift_success`), elsewhere its eval success."""
+    curve = report.curves([run])[0]
+    if run["env"] != LIFT:
+        return curve, False
+    if run["success_air"] is None:
+        return curve, True
+    return dataclasses.replace(curve, success=run["success_air"]), False
+
+
+def seed_figures(curve: report.Curve, last_n: int) -> Figures:
+    """Per seed [S], with which seeds are censored: the final success (mean of its last `last_n` epochs), the
+    normalised AUC (mean success over all epochs) and the env steps to each of `SPEED` (`protocol.seed_steps_to`:
+    censored at the run's last env steps, its budget, where the seed never reaches it)."""
+    none = np.zeros(curve.n_seeds, bool)
+    figures = {FINAL: (report.final_per_seed(curve, last_n), none), AUC: (curve.success.mean(axis=0), none)}
+    return {**figures, **{STEPS_TO.format(t): protocol.seed_steps_to(curve, t) for t in SPEED}}
+
+
+Figures = dict[str, tuple[np.ndarray, np.ndarray]]  # `seed_figures`: measure -> (per seed [S], censored [S])
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """The curves grid as claim (a) judges it."""
+
+    figures: dict[tuple[str, str], Figures]  # (task, agent) -> `seed_figures` of its `judged_curve`
+    budgets: dict[tuple[str, str], float]  # (task, agent) -> its run's last env steps per seed
+    overall: tuple[str, ...]  # the agents whose nicol_lift run is judged on overall success (no `report.AIR`)
+
+
+def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int) -> Grid:
+    """The `Grid` of the runs that exist."""
+    figures, budgets, overall = {}, {}, []
+    for key, run in runs.items():
+        if run:
+            curve, fallback = judged_curve(run)
+            figures[key], budgets[key] = seed_figures(curve, last_n), float(curve.env_steps[-1])
+            overall += [key[1]] * fallback
+    return Grid(figures, budgets, tuple(overall))
 
 
 def grid_gaps(runs: dict[tuple[str, str], dict | None]) -> list[str]:
@@ -139,10 +205,20 @@ def grid_gaps(runs: dict[tuple[str, str], dict | None]) -> list[str]:
     return [g for g in found if g]
 
 
+def air_note(overall: Sequence[str]) -> str:
+    """The rule's words on how nicol_lift is judged, naming the runs without `report.AIR` (judged on overall
+    success instead)."""
+    note = f"on {LIFT}, success over air goals ({report.AIR})"
+    return note + (f"; its runs without that column ({', '.join(overall)}) on overall success" if overall else "")
+
+
 def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale: set[str]) -> list[Claim]:
-    """Claim (a): four rows, from the curves grid."""
-    final, gaps, tasks = finals(runs, last_n), grid_gaps(runs), set(protocol.TASKS)
-    rule = f"learned: final success (mean over seeds of each seed's last {last_n} epochs) ≥ {LEARNED}"
+    """Claim (a): five rows, from the curves grid."""
+    measured = grid_figures(runs, last_n)
+    final = {key: f[FINAL][0] for key, f in measured.figures.items()}
+    gaps, tasks = grid_gaps(runs), set(protocol.TASKS)
+    rule = f"learned: final success (mean over seeds of each seed's last {last_n} epochs; {air_note(measured.overall)}"
+    rule += f") ≥ {LEARNED}"
     rows = []
     for name, agents, learns in ((f"(a) the BidAL agents ({', '.join(BIDAL)}) learn every task", BIDAL, True),
                                  (f"(a) the visual baseline ({VISUAL}) learns no task", (VISUAL,), False)):
@@ -154,46 +230,108 @@ def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale
                                          f"{figure(cells[pick])}; {learned} of {len(cells)} runs learned")
         paper = "learn all tasks (Fig. 4)" if learns else "fails to learn any task (Fig. 4)"
         rows.append(Claim(name, ours, paper, judged(checks or [UNCLEAR], gaps, tasks, stale), rule))
-    rows += best_claims(final, gaps, stale)
+    rows += best_claims(measured, gaps, stale, last_n)
     return rows
 
 
-def margin(final: dict[tuple[str, str], np.ndarray], tasks: Sequence[str]) -> tuple[str, str, float, float]:
-    """(best other agent by mean final success over `tasks`, text, low, high) of OURS − that agent."""
-    others = [a for a in AGENTS if a != OURS and all((t, a) in final for t in tasks)]
-    best = max(others, key=lambda a: np.mean([final[t, a].mean() for t in tasks]))
-    text, low, high = difference([final[t, OURS] for t in tasks], [final[t, best] for t in tasks])
+def margin(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool, digits: int = 3
+           ) -> tuple[str, str, float, float]:
+    """(the best other agent by the mean over `tasks` of its seeds' `values`, text, low, high) of OURS − that
+    agent (`difference`: seeds resampled within each task); `higher`: whether larger values are better."""
+    others = [a for a in AGENTS if a != OURS and all((t, a) in values for t in tasks)]
+    best = (max if higher else min)(others, key=lambda a: np.mean([values[t, a].mean() for t in tasks]))
+    text, low, high = difference([values[t, OURS] for t in tasks], [values[t, best] for t in tasks], digits)
     return best, text, low, high
 
 
-def best_claims(final: dict[tuple[str, str], np.ndarray], gaps: list[str], stale: set[str]) -> list[Claim]:
-    """Claim (a), second part: multimodal BidAL best overall (over the tasks' mean), most clearly on lifting."""
-    tasks = [t for t in protocol.TASKS if (t, OURS) in final]
-    if not tasks or not any(all((t, a) in final for t in tasks) for a in AGENTS if a != OURS):
+def speed(figures: dict[tuple[str, str], Figures], budgets: dict[tuple[str, str], float], tasks: Sequence[str],
+          share: bool) -> tuple[list[str], list[str]]:
+    """(checks, texts) of OURS against the best other agent in each of `MEASURES` over `tasks`: final success and
+    AUC larger, env steps to each of `SPEED` fewer (`share`: as a share of each run's budget, so that tasks of
+    other lengths weigh alike), each by its bootstrap 95 % interval; a text names the censored seeds."""
+    checks, texts = [], []
+    for name in MEASURES:
+        higher = name in (FINAL, AUC)
+        values = {key: f[name][0] / (budgets[key] if share and not higher else 1.0) for key, f in figures.items()}
+        digits = 3 if higher or share else 0
+        best, text, low, high = margin(values, tasks, higher, digits)
+        censored = sum(int(figures[t, a][name][1].sum()) for t in tasks for a in (OURS, best))
+        seeds = sum(figures[t, a][name][1].size for t in tasks for a in (OURS, best))
+        label = f"{name} (share of the budget)" if share and not higher else name
+        checks.append(compare(low, high, higher))
+        texts.append(f"{label} {text} over {best}" + (f" ({censored} of {seeds} seeds censored)" if censored else ""))
+    return checks, texts
+
+
+def speed_rule(what: str) -> str:
+    """The words of the checks of `speed`."""
+    return (f"{what}: for each of final success, AUC (each seed's mean success over all epochs) and env steps per "
+            f"seed to {' and to '.join(f'{t:g}' for t in SPEED)} (a seed that never gets there counts the run's "
+            "budget, its last env steps: censored), the bootstrap 95 % interval of OURS − the best other agent in "
+            "that measure over seeds lies on OURS's side of 0 (larger success and AUC, fewer steps)").replace(
+                "OURS", OURS)
+
+
+def best_claims(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -> list[Claim]:
+    """Claim (a), second part: multimodal BidAL best overall (over the tasks' mean), most clearly on lifting,
+    on more seeds that lift."""
+    figures = measured.figures
+    tasks = [t for t in protocol.TASKS if (t, OURS) in figures]
+    names = ((f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
+             (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"),
+             (f"(a) more of {OURS}'s seeds lift than of any other agent", "especially on lifting (Fig. 4)"))
+    if not tasks or not any(all((t, a) in figures for t in tasks) for a in AGENTS if a != OURS):
         why = f"{NOT_MEASURED}: no {OURS} run beside another agent's on the same tasks"
-        return [Claim(c, "—", p, why, "") for c, p in (
-            (f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
-            (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"))]
-    best, text, low, high = margin(final, tasks)
+        return [Claim(c, "—", p, why, "") for c, p in names]
+    checks, texts = speed(figures, measured.budgets, tasks, share=True)
     overall = Claim(
-        f"(a) {OURS} is best overall", f"mean over tasks {text} over {best} (the best other)", "best overall (Fig. 4)",
-        judged([compare(low, high, True)], gaps, set(tasks), stale),
-        "bootstrap 95 % interval of the difference of the mean over tasks of final success, seeds resampled "
-        "within each run; favours when above 0")
-    per_task = {t: margin(final, [t]) for t in tasks}
-    margins = {t: final[t, OURS].mean() - final[t, per_task[t][0]].mean() for t in tasks}
-    if LIFT not in per_task:
-        return [overall, Claim(f"(a) {OURS} leads most clearly on {LIFT}", "—", "especially on lifting (Fig. 4)",
-                               f"{NOT_MEASURED}: {LIFT} missing", "")]
-    lift_best, lift_text, low, high = per_task[LIFT]
-    checks = [compare(low, high, True)]
+        names[0][0], "mean over tasks: " + "; ".join(texts), names[0][1],
+        judged(checks, gaps, set(tasks), stale),
+        speed_rule("every check favours") + "; each the mean over tasks, steps as a share of each run's budget, "
+        f"seeds resampled within each run; {air_note(measured.overall)}")
+    if LIFT not in tasks:
+        why = f"{NOT_MEASURED}: {LIFT} missing"
+        return [overall, *(Claim(c, "—", p, why, "") for c, p in names[1:])]
+    final = {key: f[FINAL][0] for key, f in figures.items()}
+    margins = {t: final[t, OURS].mean() - final[t, margin(final, [t], True)[0]].mean() for t in tasks}
+    checks, texts = speed(figures, measured.budgets, [LIFT], share=False)
     checks += [FAVOURS if margins[LIFT] > margins[t] else AGAINST for t in tasks if t != LIFT]
     rest = ", ".join(f"{t} {margins[t]:+.3f}" for t in tasks if t != LIFT)
-    return [overall, Claim(
-        f"(a) {OURS} leads most clearly on {LIFT}", f"{LIFT}: {lift_text} over {lift_best}; other tasks: {rest}",
-        "especially on lifting (Fig. 4)", judged(checks, gaps, set(tasks), stale),
-        "its margin over the best other agent on lifting is above 0 (bootstrap 95 %) and larger than on every "
-        "other task")]
+    lift = Claim(
+        names[1][0], f"{LIFT}: " + "; ".join(texts) + f"; final-success margin on other tasks: {rest}", names[1][1],
+        judged(checks, gaps, set(tasks), stale),
+        speed_rule(f"on {LIFT}") + f", and its final-success margin over the best other agent is larger on {LIFT} "
+        f"than on every other task; {air_note(measured.overall)}")
+    return [overall, lift, lifting_claim(final, measured.overall, gaps, stale, last_n, names[2])]
+
+
+def lifts(final_air: np.ndarray, overall: bool) -> int:
+    """How many seeds lift: final success over air goals ≥ `LIFTS`, or, judged on overall success (a run without
+    `report.AIR`), overall ≥ `LIFTS_OVERALL`, which implies the former when half the goals lie in the air."""
+    return int((final_air >= (LIFTS_OVERALL if overall else LIFTS)).sum())
+
+
+def lifting_claim(final: dict[tuple[str, str], np.ndarray], overall: Sequence[str], gaps: list[str], stale: set[str],
+                  last_n: int, name: tuple[str, str]) -> Claim:
+    """Claim (a) on lifting, by seeds: OURS's seeds that lift (`lifts`) against the other agent with the largest
+    share of lifting seeds on nicol_lift, by Fisher's exact test; each share with its Wilson 95 % interval."""
+    agents = [a for a in AGENTS if (LIFT, a) in final]
+    counted_seeds = {a: (lifts(final[LIFT, a], a in overall), final[LIFT, a].size) for a in agents}
+    share = {a: f"{a} {k}/{n} {stats.interval_text(*stats.wilson_interval(k, n))}"
+             for a, (k, n) in counted_seeds.items()}
+    others = [a for a in agents if a != OURS]
+    rule = (f"a seed lifts when its success over air goals over its last {last_n} epochs is ≥ {LIFTS} (runs "
+            f"without {report.AIR}: overall success ≥ {LIFTS_OVERALL}); Fisher's exact test (two-sided) of {OURS}'s "
+            f"lifting seeds against those of the other agent with the largest share: favours when p < {ALPHA} and "
+            f"{OURS}'s share is larger, against when p < {ALPHA} and smaller; intervals: Wilson 95 % of each share")
+    if OURS not in counted_seeds or not others:
+        return Claim(name[0], "—", name[1], f"{NOT_MEASURED}: no {OURS} run beside another agent's on {LIFT}", rule)
+    best = max(others, key=lambda a: counted_seeds[a][0] / counted_seeds[a][1])
+    (k, n), (k_b, n_b) = counted_seeds[OURS], counted_seeds[best]
+    p = stats.fisher_p(k, n, k_b, n_b)
+    check = UNCLEAR if p >= ALPHA else FAVOURS if k / n > k_b / n_b else AGAINST
+    ours = f"lifting seeds: {'; '.join(share.values())}; Fisher {OURS} vs {best}: p = {p:.3g}"
+    return Claim(name[0], ours, name[1], judged([check], gaps, {LIFT}, stale), rule)
 
 
 # ----- (b) noise -------------------------------------------------------------------------------------
@@ -377,6 +515,30 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set
     return text, readme_block(rows, times, command)
 
 
+def previous_section(path: str, start: bool) -> str:
+    """The section `PREVIOUS` to keep: with `start`, a new one from the claims file `path` (`--previous`: its text
+    less its title and its own `PREVIOUS` section); else the one already in `path` (`--out`), "" when it has
+    none or does not exist. ValueError when `path` cannot be read (or, with `start`, is not a claims file)."""
+    try:
+        with open(path) as f:
+            text = f.read()
+    except FileNotFoundError:
+        if start:
+            raise ValueError(f"--previous {path}: no such file") from None
+        return ""
+    except OSError as err:
+        raise ValueError(f"{'--previous' if start else '--out'} {path}: cannot read it ({err.strerror})") from err
+    at = text.find(f"\n{PREVIOUS}\n")
+    if not start:
+        return "" if at < 0 else text[at + 1:].rstrip("\n") + "\n"
+    title, _, body = text[:at if at >= 0 else len(text)].partition("\n")
+    if not title.startswith("# "):
+        raise ValueError(f"--previous {path}: not a claims file (its first line is no '# ' title)")
+    return "\n".join([PREVIOUS, "", f"\"{title[2:]}\" as this command wrote it from the runs of the earlier tasks, "
+                      "kept verbatim for comparison: its figures, rules and notes are those of the code that wrote "
+                      "it (in git's history); its command now writes the table above.", "", body.strip("\n"), ""])
+
+
 def readme_block(rows: Sequence[Claim], times: str, command: str) -> str:
     """The claims block of a document (docs/reproduction.md): the table without its rules, the time line and
     the command, between `README_START` and `README_END`."""
@@ -411,6 +573,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--stale", default="", help="comma list of tasks whose runs to count as made on other "
                         "physics than today's besides those whose config.json says so (their verdicts say so)")
     parser.add_argument("--last-n", type=int, default=10, help="epochs of the curves' final success")
+    parser.add_argument("--previous", default=None, metavar="FILE", help=f"a claims file this command wrote: its "
+                        f"table becomes the section '{PREVIOUS}' of --out (without it, --out's own such section "
+                        "is kept)")
     parser.add_argument("--readme", default=None, help="also write the claims (without their rules) into this "
                         "file, between its lines README_START and README_END (e.g. docs/reproduction.md)")
     return parser
@@ -430,8 +595,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     options += [f"--stale {args.stale}"] * bool(args.stale) + [f"--last-n {args.last_n}"] * (args.last_n != 10)
     options += [f"--readme {args.readme}"] * bool(args.readme)
     try:
+        previous = previous_section(args.previous or args.out, start=bool(args.previous))
         text, block = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n,
                                     " ".join([PROG, *options]))
+        text += f"\n{previous}" if previous else ""
         if args.readme:
             write_readme(args.readme, block)
         with rundir.writing(args.out):

@@ -26,7 +26,7 @@ import os
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
-from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, resolve
+from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, recorded, resolve
 from bidal_jax.run import checkpoint, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
@@ -178,13 +178,14 @@ def config_changes(config: dict, today: Config) -> str | None:
     updates_per_cycle, batch_size, buffer_episodes, eval_envs; and the learner: learning rates, noise, HER,
     exploration starts, ...), all of network, and of run env, agent, seeds, seed, epochs (the budget the run
     was made for: a run of another one reports other epochs; raising a grid's epochs makes its finished runs
-    stale), target_success and init_parts; not `NOT_COMPARED`. A field the config.json lacks (a run older than
-    it) takes its default, as `Config.from_dict` and resuming do."""
+    stale), target_success, init_parts and init_normaliser; not `NOT_COMPARED`. A field the config.json lacks (a
+    run older than it) takes what such a run did (`bidal_jax.config.recorded`), as `Config.from_dict` and resuming
+    do."""
     changed = []
     for name, group in CONFIG_CLASSES.items():
-        recorded, ours = config.get(name) or {}, getattr(today, name)
+        fields, ours = recorded(name, config.get(name) or {}), getattr(today, name)
         for field in (f for f in dataclasses.fields(group) if f.name not in NOT_COMPARED):
-            was, now = recorded.get(field.name, field.default), getattr(ours, field.name)
+            was, now = fields.get(field.name, field.default), getattr(ours, field.name)
             if was != now:
                 changed.append(f"{field.name} {was} → {now}")
     return f"config differs: {', '.join(changed)}" if changed else None

@@ -2,7 +2,8 @@
 from the representation of a sliding run.
 
     python -m experiments.paper.transfer_learning [--seeds 5] [--out results/transfer] [--source RUN_DIR]
-        [--source-epochs N] [--epochs N] [--held-starts] [--arms source,transfer,scratch] [--dry-run]
+        [--source-epochs N] [--epochs N] [--init-normaliser fresh|inherit] [--held-starts]
+        [--arms source,transfer,scratch] [--dry-run]
         [any learner or network option of experiments.run]
 
 Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in `--out`:
@@ -11,7 +12,8 @@ Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in 
   names a finished one (`--source-checkpoint` picks a step or "best"; default the latest);
 - `transfer/`: nicol_lift_reduced whose encoder and forward and inverse models (`--init-parts`)
   start from the source's (`bidal_jax/run/transfer.py`: seed i from the source's seed i, the proprio
-  rows and the proprio normaliser matched by segment name, optimisers fresh);
+  rows matched by segment name, optimisers fresh), its proprio normaliser fresh (zero counts), or the
+  source's, rows matched alike, with `--init-normaliser inherit` (recorded in its config.json);
 - `scratch/`: the same run from a fresh start: same seeds, epochs and settings.
 
 Faithful to the paper by default: no held starts (`exploration_starts` 0 in both arms);
@@ -59,7 +61,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bidal_jax.config import ConfigError, RunConfig, resolve
+from bidal_jax.config import INIT_NORMALISERS, ConfigError, RunConfig, resolve
 from bidal_jax.run import multihost
 from experiments import cli, cluster, report, stats
 from experiments.paper import grid
@@ -84,6 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped (the source needs as many)")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
+    parser.add_argument("--init-normaliser", default=RunConfig.init_normaliser, choices=INIT_NORMALISERS,
+                        help="the transfer arm's proprio normaliser: fresh (zero counts) or inherit (the source's)")
     parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
                         "training episodes with the cube held (a labelled variant; the paper has none)")
     parser.add_argument("--arms", default=",".join(ARMS), help="the runs this command trains, a comma list of "
@@ -112,7 +116,8 @@ def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list
     source_ref = source_dir(args, out) + (f":{args.source_checkpoint}" if args.source_checkpoint else "")
     runs = [] if args.source else [("source", {**common, "env": SOURCE_ENV}, args.source_epochs)]
     runs += [
-        ("transfer", {**target, "init_from": source_ref, "init_parts": args.init_parts}, args.epochs),
+        ("transfer", {**target, "init_from": source_ref, "init_parts": args.init_parts,
+                      "init_normaliser": args.init_normaliser}, args.epochs),
         ("scratch", target, args.epochs),
     ]
     arms = []

@@ -98,3 +98,11 @@ def test_difference_table_rows():
     # Welch: se 50 (scratch has no spread), df 1, t(0.975, 1) = 12.706 -> ± 635
     assert "| env steps to 0.3 | 150 | 300 | -150 | [-200, -100] | [-785, 485] |" in table
     assert "| env steps to 0.5 | 250 | 300 (1 of 2 censored*) | -50 | [-100, 0] | [-685, 585] |" in table
+
+
+def test_fisher_p_is_the_exact_two_sided_p_of_two_fractions():
+    # 5/5 against 0/5: of the C(10, 5) = 252 equally likely splits, the two as extreme give p = 2/252
+    assert stats.fisher_p(5, 5, 0, 5) == pytest.approx(2 / 252)
+    assert stats.fisher_p(0, 5, 0, 5) == 1.0
+    with pytest.raises(ValueError, match="fisher_p"):
+        stats.fisher_p(6, 5, 0, 5)

@@ -1,7 +1,7 @@
-"""Transfer (paper Sec. IV-C; bidal_jax/run/transfer.py): a run started with --init-from holds the
-source's encoder, forward and inverse models (its proprio rows matched by segment name) and
-normalisers, with fresh optimisers, read without the replay buffer; mismatches are refused before
-anything is written.
+"""Transfer (paper Sec. IV-C; bidal_jax/run/transfer.py): a run started with --init-from holds the source's
+encoder, forward and inverse models (its proprio rows matched by segment name), with fresh optimisers and,
+unless --init-normaliser inherit, a fresh proprio normaliser, read without the replay buffer; mismatches are
+refused before anything is written.
 
 The mechanism is tested on planar_reach (proprio q 2, qdot 2) as the source and a planar_reach
 without qdot as the target: one source run and one transferred run (an image agent compiles in
@@ -21,11 +21,12 @@ import pytest
 import envs_mjx
 from bidal_jax import normalizer
 from bidal_jax.agents import ddpg
-from bidal_jax.config import resolve
+from bidal_jax.config import Config, resolve
 from bidal_jax.run import checkpoint, preflight, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
 from experiments import run
+from experiments.paper import grid
 from tests.helpers import assert_refused, restored_state
 
 NO_QDOT, RENAMED = "planar_reach_noqdot", "planar_reach_renamed"
@@ -148,10 +149,22 @@ def test_restored_parts_equal_the_sources_by_name_and_the_proprio_rows_are_those
                               _leaves(fresh.params["encoder"])["params/proprio/bias"])
 
 
-def test_the_proprio_normaliser_follows_the_encoder_with_the_kept_rows(transferred, source_state):
+def test_the_proprio_normaliser_starts_afresh_by_default(transferred, source_state):
     _, fresh, initial = transferred
+    assert float(source_state.proprio_norm.count[0]) > 0  # the source's statistics are real
+    for a, b in zip(jax.tree.leaves((initial.proprio_norm, initial.goal_norm)),
+                    jax.tree.leaves((fresh.proprio_norm, fresh.goal_norm))):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(initial.proprio_norm.count, np.zeros(SEEDS))
+
+
+def test_inherit_normaliser_keeps_the_sources_statistics_with_the_kept_rows(transferred, source, source_state):
+    _, fresh, _ = transferred
+    run = dataclasses.replace(resolve({"env": NO_QDOT, "seeds": SEEDS}).run, init_from=source[1],
+                              init_normaliser="inherit")
+    segments = envs_mjx.make(NO_QDOT, render=False).observation_spec.proprio_segments
+    initial = transfer.make_initializer(run, segments, envs_mjx.make, log=lambda message: None)(fresh)
     src = source_state.proprio_norm
-    assert float(src.count[0]) > 0 and float(fresh.proprio_norm.count[0]) == 0  # the source's statistics are real
     np.testing.assert_array_equal(initial.proprio_norm.count, src.count[:SEEDS])
     for field in normalizer.FEATURE_FIELDS:
         expected = getattr(src, field)[:SEEDS, :2]
@@ -161,6 +174,14 @@ def test_the_proprio_normaliser_follows_the_encoder_with_the_kept_rows(transferr
         np.testing.assert_array_equal(a, b)
 
 
+def test_a_transfer_run_recorded_before_init_normaliser_inherited(source):
+    old = {"run": {"env": NO_QDOT, "init_from": source[1]}, "train": {}, "network": {}}
+    assert Config.from_dict(old, "old").run.init_normaliser == "inherit"
+    assert Config.from_dict({**old, "run": {"env": NO_QDOT}}, "scratch").run.init_normaliser == "fresh"
+    today = resolve({"env": NO_QDOT, "init_from": source[1]})
+    assert grid.config_changes(old, today) == "config differs: init_normaliser inherit → fresh"
+
+
 def test_the_transferred_run_trains_without_the_sources_buffer_and_records_its_source(transferred, source):
     run_dir, _, _ = transferred
     assert not os.path.exists(os.path.join(source[1], "checkpoints", "1", "buffer"))
@@ -168,7 +189,7 @@ def test_the_transferred_run_trains_without_the_sources_buffer_and_records_its_s
         assert [int(r["epoch"]) for r in csv.DictReader(f)] == [1]
     with open(os.path.join(run_dir, "config.json")) as f:
         saved = json.load(f)["run"]
-    assert (saved["init_from"], saved["init_parts"]) == (source[1], ",".join(PARTS))
+    assert (saved["init_from"], saved["init_parts"], saved["init_normaliser"]) == (source[1], ",".join(PARTS), "fresh")
 
 
 def test_resume_keeps_the_transfer_fields_and_does_not_transfer_again(transferred, source, monkeypatch, capsys):

@@ -1,15 +1,19 @@
 """experiments.paper.claims on hand-written run folders (conftest's `write_fake_run`): each verdict
 (reproduced, not reproduced, reversed, not measured) and the stale-task qualifier."""
 
+import csv
 import functools
 import json
+import os
 import shutil
 import types
 
+import numpy as np
 import pytest
 
 import envs_mjx
 from bidal_jax.config import AGENTS
+from experiments import report
 from experiments.paper import claims, protocol
 from tests.conftest import TODAY, write_fake_run
 
@@ -79,14 +83,17 @@ def test_transfer_not_measured_when_an_arm_is_missing_or_short_and_stale_tasks_q
 
 def write_grid(fake_run, out):
     """The curves grid as the paper has it: BidAL agents learn, the visual baseline does not, multimodal
-    BidAL leads everywhere by 0.05 and on lifting by 0.3."""
+    BidAL leads everywhere by 0.07 and on lifting by 0.37, and rises twice as fast as the others (0.1 an epoch
+    against 0.05, up to its level): a larger AUC, fewer env steps to 0.5 and 0.9."""
     for task in protocol.TASKS:
         lift = task == "nicol_lift"
-        level = {"multimodal_bidal": 0.9 if lift else 0.95, "visual_bidal": 0.7, "visual_baseline": 0.1,
+        level = {"multimodal_bidal": 0.97, "visual_bidal": 0.7, "visual_baseline": 0.1,
                  "multimodal_baseline": 0.6 if lift else 0.9, "proprio_baseline": 0.5 if lift else 0.85}
         for agent in AGENTS:
             levels = [level[agent] + 0.01 * (i - 2) for i in range(5)]
-            fake_run(str(out / task / agent), task, rows(levels, protocol.EPOCHS[task]), None, agent)
+            rate = 0.1 if agent == claims.OURS else 0.05
+            success = [[min(x, rate * (e + 1)) for x in levels] for e in range(protocol.EPOCHS[task])]
+            fake_run(str(out / task / agent), task, success, None, agent)
 
 
 def write_noise(fake_run, out, steady_agent="multimodal_bidal"):
@@ -107,7 +114,7 @@ def test_the_command_writes_every_claim_reproduced_where_the_runs_agree_with_the
     assert claims.main(argv) == 0
     text = open(out).read()
     table = [line for line in text.splitlines() if line.startswith("| (")]
-    assert len(table) == 8 and all(line.split(" | ")[3] == "reproduced" for line in table)
+    assert len(table) == 9 and all(line.split(" | ")[3] == "reproduced" for line in table)
     assert f"Regenerate: `python -m experiments.paper.claims {' '.join(argv)}`" in text
     assert "lowest: visual_bidal" in text and "0.700 [" in text
     assert claims.main([*argv, "--stale", "nicol_lift,bogus"]) == 2
@@ -204,3 +211,77 @@ def test_readme_block_is_replaced_and_a_readme_without_one_is_refused(tmp_path, 
     assert claims.main(argv) == 2
     assert "no claims block to replace" in capsys.readouterr().err
     assert readme.read_text() == "# no block\n" and not (tmp_path / "claims.md").exists()
+
+
+def with_air(run_dir, air):
+    """Add per-seed `eval_success_air` columns to a fake run's metrics.csv: `air` per epoch, each seed's."""
+    path = os.path.join(run_dir, "metrics.csv")
+    with open(path, newline="") as f:
+        table = list(csv.reader(f))
+    table[0] += [f"{report.AIR}_seed{i}" for i in range(len(air[0]))]
+    for line, values in zip(table[1:], air):
+        line += [str(v) for v in values]
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows(table)
+
+
+def test_learning_speed_enters_the_verdict_with_auc_and_steps_intervals(tmp_path, fake_run):
+    write_grid(fake_run, tmp_path)
+    *_, overall, lift, seeds = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
+    assert overall.verdict == lift.verdict == seeds.verdict == "reproduced"
+    # multimodal_bidal reaches 0.5 at epoch 5 (500 env steps per seed), the others at epoch 10 (1,000)
+    assert "env steps to 0.5 -500 [-500, -500] over multimodal_baseline" in lift.ours
+    assert "AUC +" in overall.ours and "env steps to 0.9 (share of the budget) -" in overall.ours
+    # the same speed as the best other agent: the steps' intervals straddle 0, so the claim is not reproduced
+    for task in protocol.TASKS:
+        levels = [0.9 + 0.01 * (i - 2) for i in range(5)]
+        fake_run(str(tmp_path / "slow" / task / claims.OURS), task,
+                 [[min(x, 0.05 * (e + 1)) for x in levels] for e in range(protocol.EPOCHS[task])], None, claims.OURS)
+        for agent in set(AGENTS) - {claims.OURS}:
+            shutil.copytree(tmp_path / task / agent, tmp_path / "slow" / task / agent)
+    *_, overall, _, _ = claims.learning_claims(claims.load_grid(str(tmp_path / "slow")), 10, set())
+    assert overall.verdict != "reproduced" and "env steps to 0.5 (share of the budget) +0.000 [0.000, 0.000]" \
+        in overall.ours
+
+
+def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
+    write_grid(fake_run, tmp_path)
+    # multimodal_bidal slides but never lifts: 0.97 overall, 0.1 on air goals
+    with_air(str(tmp_path / "nicol_lift" / claims.OURS), [[0.1] * 5] * protocol.EPOCHS["nicol_lift"])
+    learn, *_, seeds = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
+    assert learn.verdict == "not reproduced" and "lowest: multimodal_bidal on nicol_lift 0.100" in learn.ours
+    assert f"runs without that column ({', '.join(a for a in AGENTS if a != claims.OURS)})" in learn.rule
+    assert f"{claims.OURS} 0/5 [" in seeds.ours and seeds.verdict == "not reproduced"  # 0/5 against 0/5: p = 1
+
+
+@pytest.mark.parametrize("ours, other, expected", [
+    (5, 0, "reproduced"),  # p = 0.008
+    (3, 0, "not reproduced"),  # p = 0.167: too few seeds to tell
+    (0, 5, "reversed"),
+])
+def test_lifting_seeds_are_compared_by_fishers_exact_test(ours, other, expected):
+    def final(k):
+        return np.array([0.7] * k + [0.1] * (5 - k))
+
+    finals = {("nicol_lift", claims.OURS): final(ours), ("nicol_lift", "multimodal_baseline"): final(other),
+              ("nicol_lift", "proprio_baseline"): final(0)}
+    row = claims.lifting_claim(finals, (), [], set(), 10, ("lift", "paper"))
+    assert row.verdict == expected
+    assert f"{claims.OURS} {ours}/5 [" in row.ours and f"Fisher {claims.OURS} vs " in row.ours
+    # judged on overall success (no air column), a seed lifts only at 0.75 or more
+    assert claims.lifting_claim(finals, tuple(AGENTS), [], set(), 10, ("lift", "paper")).verdict == "not reproduced"
+
+
+def test_the_previous_table_is_kept_under_its_heading(tmp_path, fake_run):
+    write_transfer(fake_run, tmp_path / "transfer", 0.1, 0.02)
+    old, out = tmp_path / "old.md", tmp_path / "claims.md"
+    old.write_text("# The claims\n\n| claim |\n| --- |\n| (a) an old row |\n")
+    argv = ["--curves", str(tmp_path / "curves"), "--noise", str(tmp_path / "noise"), "--transfer",
+            str(tmp_path / "transfer"), "--out", str(out)]
+    assert claims.main([*argv, "--previous", str(old)]) == 0
+    for _ in range(2):  # written again without --previous: the section stays, once
+        text = out.read_text()
+        assert text.count(claims.PREVIOUS) == 1 and text.endswith("| (a) an old row |\n")
+        assert text.index("| (c) reduced lift") < text.index(claims.PREVIOUS) < text.index("an old row")
+        assert claims.main(argv) == 0
+    assert claims.main([*argv, "--previous", str(tmp_path / "none.md")]) == 2

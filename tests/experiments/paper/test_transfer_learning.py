@@ -174,10 +174,13 @@ def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
     source, moved, scratch = (a.given for a in arms)
     assert (source["env"], source["epochs"], source["num_envs"]) == ("nicol_slide", 100, 64)
     assert "exploration_starts" not in source  # nicol_slide has no held start
-    assert {k: v for k, v in moved.items() if k not in ("init_from", "init_parts", "run_dir")} == {
+    assert {k: v for k, v in moved.items() if k not in ("init_from", "init_parts", "init_normaliser", "run_dir")} == {
         k: v for k, v in scratch.items() if k != "run_dir"
     }
     assert (scratch["exploration_starts"], scratch["seeds"], moved["init_from"]) == (0.5, 5, "out/source")
+    assert moved["init_normaliser"] == "fresh"  # the target task's statistics, unless --init-normaliser inherit
+    args, _ = experiment.build_parser().parse_known_args(["--init-normaliser", "inherit"])
+    assert experiment.make_arms(args, {}, "out")[1].given["init_normaliser"] == "inherit"
     args, rest = experiment.build_parser().parse_known_args(["--source", "runs/slide", "--source-checkpoint", "best"])
     arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
     assert [a.name for a in arms] == ["transfer", "scratch"] and arms[0].given["init_from"] == "runs/slide:best"
