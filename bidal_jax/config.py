@@ -53,6 +53,7 @@ def _name_list(v: str) -> bool:
 
 
 CONV_IMPLS = ("patch", "native")  # NetworkConfig.conv_impl
+VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
 INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
 POSITIVE_INT = Rule(int, lambda v: v >= 1, "a positive integer")
@@ -84,6 +85,13 @@ class NetworkConfig:
         "on XLA:CPU, about 5× on one H100) or 'native' (XLA's convolution, cuDNN on a GPU); the same function and "
         "parameters, so runs of either compare and resume alike",
         Rule(str, lambda v: v in CONV_IMPLS, "one of " + ", ".join(CONV_IMPLS)),
+    )
+    vision_dtype: str = doc(
+        "float32",
+        "the dtype the vision branch computes in: float32, or bfloat16 (mixed precision: its convs and dense "
+        "layer in bfloat16, parameters, gradients, optimiser state and every other network in float32; about "
+        "half the memory traffic of the image updates; docs/results.md, 'Image updates')",
+        Rule(str, lambda v: v in VISION_DTYPES, "one of " + ", ".join(VISION_DTYPES)),
     )
     vision_features: int = doc(64, "width of the dense layer that ends the vision branch", POSITIVE_INT)
     proprio_features: int = doc(64, "width of the proprio branch's dense layer", POSITIVE_INT)

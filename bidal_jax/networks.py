@@ -40,7 +40,8 @@ class PatchConv(nn.Module):
     XLA's CPU backend runs this form 3-4× faster inside the training loop's `lax.scan`,
     where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `native`
     computes the same convolution with XLA's convolution op instead (`NetworkConfig.conv_impl`;
-    cuDNN on a GPU), same parameters.
+    cuDNN on a GPU), same parameters. It computes in the dtype of `x` (float32 parameters cast to it):
+    with bfloat16 input its patches, matmul and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
 
     features: int
@@ -60,8 +61,8 @@ class PatchConv(nn.Module):
             x = jnp.pad(x, ((0, 0), (pad_h // 2, pad_h - pad_h // 2), (pad_w // 2, pad_w - pad_w // 2), (0, 0)))
         else:
             out_h, out_w = (height - k) // s + 1, (width - k) // s + 1
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features))
-        bias = self.param("bias", nn.initializers.zeros, (self.features,))
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features)).astype(x.dtype)
+        bias = self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
         if self.native:  # x is padded already: a VALID convolution gives the out_h × out_w map
             return jax.lax.conv_general_dilated(x, kernel, (s, s), "VALID",
                                                 dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
@@ -89,17 +90,18 @@ class VisionBranch(nn.Module):
     features: int
     strides: tuple[int, ...] = (3, 2, 2, 2)
     native: bool = False  # XLA's convolution op instead of slices and a matmul (PatchConv)
+    dtype: Any = jnp.float32  # what the layers compute in (parameters stay float32); the features come out float32
 
     @nn.compact
     def __call__(self, image: jax.Array) -> jax.Array:
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
-        x = image.astype(jnp.float32) / 255.0
+        x = image.astype(self.dtype) / 255.0
         first, *rest = self.strides
         x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", native=self.native)(x))
         for stride in rest:
             x = nn.elu(PatchConv(self.channels, stride=stride, native=self.native)(x))
         x = x.reshape(x.shape[0], -1)
-        return nn.elu(nn.Dense(self.features)(x))
+        return nn.elu(nn.Dense(self.features, dtype=self.dtype)(x)).astype(jnp.float32)
 
 
 PROPRIO_LAYER = "proprio"  # the encoder's proprio branch: its kernel's rows are the proprio features
@@ -116,7 +118,7 @@ class Encoder(nn.Module):
         chex.assert_rank(proprio, 2)
         cfg = self.config
         parts = [VisionBranch(cfg.conv_channels, cfg.vision_features, parse_strides(cfg.conv_strides),
-                              native=cfg.conv_impl == "native")(image)]
+                              native=cfg.conv_impl == "native", dtype=jnp.dtype(cfg.vision_dtype))(image)]
         if self.uses_proprio:
             parts.append(nn.elu(nn.Dense(cfg.proprio_features, name=PROPRIO_LAYER)(proprio)))
         x = nn.Dense(cfg.latent_size)(jnp.concatenate(parts, axis=-1))

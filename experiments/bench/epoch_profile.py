@@ -2,9 +2,12 @@
 
     python -m experiments.bench.epoch_profile --env nicol_slide --agent multimodal_bidal --seeds 1
     python -m experiments.bench.epoch_profile --env planar_reach --seeds 3 --out runs/profile/planar
+    python -m experiments.bench.epoch_profile --env nicol_lift --agent multimodal_bidal --seeds 5 \
+        --variant net.vision_dtype=bfloat16
 
-Builds the preset's training program as `experiments.bench.throughput --devices 1` does, runs two epochs
-(compilation, warm-up), then traces a third with `jax.profiler.trace` (the trace, with a Perfetto
+Builds the preset's training program as `experiments.bench.throughput --devices 1` does (with a `--variant`'s
+overrides, as `experiments.bench.sweep` reads them), runs two epochs (compilation, then a warm epoch, whose
+untraced time it prints at once), then traces a third with `jax.profiler.trace` (the trace, with a Perfetto
 JSON copy, stays in `--out` for TensorBoard or ui.perfetto.dev) and prints, per device stream and
 host thread, the seconds its events add up to, how many there are, and its largest operations.
 On a GPU the event count of the compute stream is the number of kernels an epoch launches: when
@@ -27,7 +30,7 @@ import jax
 import envs_mjx
 from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
-from experiments.bench.programs import seeded_program
+from experiments.bench.programs import parse_variant, seeded_program
 
 
 def summarise(events: list[dict], top: int = 10) -> list[dict]:
@@ -58,13 +61,18 @@ def summarise(events: list[dict], top: int = 10) -> list[dict]:
     ]
 
 
-def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10) -> tuple[float, list[dict]]:
-    """(the traced epoch's wall seconds, `summarise(..., top)` of its trace), written to `out`."""
-    init, epoch, *_ = seeded_program(name, agent, seeds)
+def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10,
+                  variant: str = "preset") -> tuple[float, list[dict]]:
+    """(the traced epoch's wall seconds, `summarise(..., top)` of its trace), written to `out`, of the preset
+    with `variant`'s overrides (`programs.parse_variant`); prints the compiling and the warm epoch's seconds."""
+    train, network, options = parse_variant(variant)
+    init, epoch, *_ = seeded_program(name, agent, seeds, train=train, network=network, options=options)
     state = init(jax.random.split(jax.random.PRNGKey(0), seeds))
-    for _ in range(2):  # compilation, then a warm epoch
+    for label in ("first epoch (compilation included)", "warm epoch, untraced"):
+        start = time.perf_counter()
         state, metrics = epoch(state)
         jax.block_until_ready(metrics)
+        print(f"{label}: {time.perf_counter() - start:.2f} s", flush=True)
     with jax.profiler.trace(out, create_perfetto_trace=True):
         start = time.perf_counter()
         state, metrics = epoch(state)
@@ -85,6 +93,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--seeds", type=int, default=1)
     parser.add_argument("--top", type=int, default=10, help="largest operations shown per stream or thread")
     parser.add_argument("--streams", type=int, default=6, help="streams and threads shown, largest first")
+    parser.add_argument("--variant", default="preset", help="k=v,net.k=v,opt.k=v overrides of the preset "
+                        "(as experiments.bench.sweep's --variant)")
     parser.add_argument("--out", default="", help="trace folder (default: runs/profile/ENV-AGENT-SEEDS)")
     args = parser.parse_args(argv)
     try:
@@ -92,10 +102,10 @@ def main(argv: list[str] | None = None) -> None:
     except ConfigError as err:
         raise SystemExit(f"error: {err}") from err
     out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
-    wall, rows = profile_epoch(args.env, args.agent, args.seeds, out, args.top)
+    wall, rows = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant)
     device = jax.devices()[0]
     print(
-        f"{args.env} {args.agent}, {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
+        f"{args.env} {args.agent} ({args.variant}), {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
         f"traced epoch {wall:.2f} s (profiling slows it); trace in {out}"
     )
     for row in rows[: args.streams]:

@@ -3,18 +3,20 @@
 `seeded_program(env, agent, seeds, ...)` builds the env (`make_env`: on MJX's JAX or MuJoCo Warp
 physics), the preset config (`bidal_jax.config.resolve`, with any `TrainConfig` overrides), the
 device layout (`bidal_jax.run.devices.device_layout`) and the seeds' one compiled program
-(`make_seeded`), as `python -m experiments.run` would.
+(`make_seeded`), as `python -m experiments.run` would. `parse_variant` reads the overrides of a benchmark's
+`--variant` (`a=1,net.hidden_size=256,opt.iterations=5`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 from typing import Any, Callable, NamedTuple
 
 import jax
 
 import envs_mjx
-from bidal_jax.config import Config, TrainConfig, resolve
+from bidal_jax.config import Config, NetworkConfig, TrainConfig, resolve
 from bidal_jax.run import validate
 from bidal_jax.run.devices import device_layout, make_seeded
 from bidal_jax.train import make_train
@@ -49,6 +51,33 @@ def program_config(name: str, agent: str, train: dict | None = None, network: di
                                  network=dataclasses.replace(preset.network, **(network or {})))
     validate.check(config, env_names=envs_mjx.names())
     return config
+
+
+def parse_variant(text: str) -> tuple[dict, dict, dict]:
+    """(TrainConfig overrides, NetworkConfig overrides, physics options) of a variant: `preset` -> ({}, {}, {});
+    `a=1,b=2.5,net.hidden_size=256,opt.iterations=5` -> ({"a": 1, "b": 2.5}, {"hidden_size": 256},
+    {"iterations": "5"}), the overrides typed as the fields are; `opt.NAME` entries override the model's physics
+    options (`envs_mjx.base.Env.set_options`)."""
+    train, network, options = {}, {}, {}
+    if text == "preset":
+        return train, network, options
+    groups = {"": (TrainConfig, train), "net.": (NetworkConfig, network)}
+    for item in re.split(r",(?=[A-Za-z_.]+=)", text):  # a comma starts an item only before NAME=, so values
+        # may hold commas (net.conv_strides=2,2,1,1)
+        name, _, value = item.partition("=")
+        if name.startswith("opt."):
+            options[name[4:]] = value  # converted and checked by Env.set_options
+            continue
+        prefix = "net." if name.startswith("net.") else ""
+        group, into = groups[prefix]
+        fields = {f.name: f.type for f in dataclasses.fields(group)}
+        field = name[len(prefix):]
+        if field not in fields:
+            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field, net.NAME of a "
+                             "NetworkConfig field nor opt.NAME")
+        kind = {"int": int, "float": float, "str": str}.get(str(fields[field]), float)
+        into[field] = kind(value)
+    return train, network, options
 
 
 def seeded_program(

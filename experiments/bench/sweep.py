@@ -27,10 +27,8 @@ its rows rewritten.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
-import re
 import shutil
 import time
 
@@ -39,9 +37,9 @@ PROCESS_START = time.perf_counter()
 import jax  # noqa: E402 - imported after the process clock starts, so that process_seconds counts it
 import numpy as np  # noqa: E402
 
-from bidal_jax.config import ConfigError, NetworkConfig, TrainConfig  # noqa: E402
+from bidal_jax.config import ConfigError  # noqa: E402
 from experiments import cli, cluster  # noqa: E402
-from experiments.bench.programs import program_config, seeded_program  # noqa: E402
+from experiments.bench.programs import parse_variant, program_config, seeded_program  # noqa: E402
 
 THRESHOLDS = (0.5, 0.8, 0.9)
 REWARDS = ("extrinsic_reward", "intrinsic_reward")
@@ -54,33 +52,6 @@ def reward_ratio(rows: list[dict]) -> float | None:
     r_i = np.mean([abs(r["intrinsic_reward"]) for r in rows])
     r_e = np.mean([abs(r["extrinsic_reward"]) for r in rows])
     return float(r_i / max(r_e, 1e-9))
-
-
-def parse_variant(text: str) -> tuple[dict, dict, dict]:
-    """(TrainConfig overrides, NetworkConfig overrides, physics options) of a variant: `preset` -> ({}, {}, {});
-    `a=1,b=2.5,net.hidden_size=256,opt.iterations=5` -> ({"a": 1, "b": 2.5}, {"hidden_size": 256},
-    {"iterations": "5"}), the overrides typed as the fields are; `opt.NAME` entries override the model's physics
-    options (`envs_mjx.base.Env.set_options`)."""
-    train, network, options = {}, {}, {}
-    if text == "preset":
-        return train, network, options
-    groups = {"": (TrainConfig, train), "net.": (NetworkConfig, network)}
-    for item in re.split(r",(?=[A-Za-z_.]+=)", text):  # a comma starts an item only before NAME=, so values
-        # may hold commas (net.conv_strides=2,2,1,1)
-        name, _, value = item.partition("=")
-        if name.startswith("opt."):
-            options[name[4:]] = value  # converted and checked by Env.set_options
-            continue
-        prefix = "net." if name.startswith("net.") else ""
-        group, into = groups[prefix]
-        fields = {f.name: f.type for f in dataclasses.fields(group)}
-        field = name[len(prefix):]
-        if field not in fields:
-            raise SystemExit(f"error: --variant {text}: {name!r} is not a TrainConfig field, net.NAME of a "
-                             "NetworkConfig field nor opt.NAME")
-        kind = {"int": int, "float": float, "str": str}.get(str(fields[field]), float)
-        into[field] = kind(value)
-    return train, network, options
 
 
 def train_variant(args, label: str, overrides: dict, network: dict, options: dict, sink) -> None:

@@ -54,6 +54,27 @@ def test_native_convs_are_the_same_encoder_with_the_same_parameters(strides):
         np.testing.assert_allclose(a, b, atol=1e-4)
 
 
+def test_a_bfloat16_vision_branch_keeps_float32_parameters_and_gradients():
+    """--vision-dtype bfloat16: the same parameter tree in float32 (a checkpoint of either loads in the other);
+    φ(s) comes out float32, within bfloat16's rounding of the float32 branch's, and so do its gradients."""
+    def networks(dtype):
+        config = NetworkConfig(conv_channels=4, latent_size=8, vision_dtype=dtype)
+        return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
+
+    full, half = networks("float32"), networks("bfloat16")
+    params = full.init(jax.random.PRNGKey(0))["encoder"]
+    assert jax.tree.structure(half.init(jax.random.PRNGKey(0))["encoder"]) == jax.tree.structure(params)
+    assert {leaf.dtype for leaf in jax.tree.leaves(half.init(jax.random.PRNGKey(0)))} == {np.dtype(np.float32)}
+    image = jax.random.randint(jax.random.PRNGKey(1), (3, 42, 42, 1), 0, 256).astype(np.uint8)
+    proprio = jax.random.normal(jax.random.PRNGKey(2), (3, 4))
+    phi = half.encode(params, image, proprio)
+    assert phi.dtype == np.float32
+    np.testing.assert_allclose(phi, full.encode(params, image, proprio), atol=0.05)
+    assert not np.allclose(phi, full.encode(params, image, proprio), atol=1e-6)  # it did compute in bfloat16
+    grads = jax.grad(lambda p: (half.encode(p, image, proprio) ** 2).sum())(params)
+    assert {leaf.dtype for leaf in jax.tree.leaves(grads)} == {np.dtype(np.float32)}
+
+
 @pytest.mark.parametrize(
     "strides, features", [("3,2,2,2", 2 * 2 * 4), ("2,2,1,1", 10 * 10 * 4), ("2,2,2,2", 3 * 3 * 4)]
 )
