@@ -2,7 +2,7 @@
 
 Proprio is (q, qdot), D = 6; the action (A = 3) moves each joint's position target by at
 most 0.1 rad from the current joint angle; the goal (G = 3) is a configuration of shoulder
-pan, shoulder lift and elbow, shown by three yellow cubes at the elbow, wrist and tool
+pan, shoulder lift and elbow, shown by three dark yellow cubes at the elbow, wrist and tool
 points of that configuration. Start and goal are drawn from the same distribution:
 uniform within the joint ranges (pan ±π/2, lift [-π + 0.3, -0.3], elbow ±2.5 rad),
 rejecting configurations whose elbow, wrist or tool point is below 0.05 m. Success:

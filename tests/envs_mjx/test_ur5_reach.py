@@ -11,11 +11,14 @@ import pytest
 
 from bidal_jax import acting
 from envs_mjx import ur5_reach
+from envs_mjx.base import IMAGE_SHAPE
+from envs_mjx.camera import Camera
 from envs_mjx.ur5_reach import UR5Reach, forward_kinematics
 
 N_RESETS = 2000
 N_ENVS = 16
 N_STEPS = 50
+ARM_GEOMS = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_stub")
 
 
 @pytest.fixture(scope="module")
@@ -145,12 +148,22 @@ def test_random_actions_keep_the_joints_in_range(env, resets, rollout):
     assert ((qpos >= low - 1e-3) & (qpos <= high + 1e-3)).all()
 
 
+def test_every_start_and_goal_point_is_inside_the_frame(env, resets):
+    camera = Camera(env.mj_model, "side", IMAGE_SHAPE[0])
+    q = np.concatenate([np.asarray(resets.data.qpos), np.asarray(resets.info["goal"])])
+    points = np.asarray(forward_kinematics(jnp.asarray(q))).reshape(-1, 3)
+    pixels = np.array([camera.project(p) for p in points])
+    assert pixels.min() >= 0.5 and pixels.max() <= IMAGE_SHAPE[0] - 0.5, (pixels.min(), pixels.max())
+
+
 def test_camera_sees_the_arm_move_and_the_cubes():
     env = UR5Reach(render=True)
     gray = env.camera.gray_levels
     geoms = [_id(env.mj_model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("floor", "upper_arm_link", "goal_tool")]
     floor, arm, cube = gray[geoms]
-    assert floor < arm < cube
+    # the cubes darker than every arm link: the goal configuration is not drawn as a second arm
+    links = gray[[_id(env.mj_model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ARM_GEOMS]]
+    assert floor < cube < links.min()
     state = jax.jit(env.reset)(jax.random.PRNGKey(4))
     before = np.asarray(state.obs["image"])
     assert (before == cube).sum() >= 3
