@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bidal_jax.config import Config
-from bidal_jax.run import checkpoint, multihost, rundir, runfiles
+from bidal_jax.run import checkpoint, exported, multihost, rundir, runfiles
 from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
 from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
@@ -111,9 +111,26 @@ def build(
         state, step = programs.init(programs.keys()), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
             state = jax.device_put(initialize(state), programs.sharding)
-    compiled = programs.epoch.lower(state).compile()
+    compiled = _compile(programs, config, env, state, log)
     log(f"compiled in {time.time() - start:.1f} s")
     return compiled, state, step, programs.shards
+
+
+def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:
+    """The compiled epoch: through `exported` where it applies (one device, one env shard, one process, a
+    persistent compilation cache; a line says when the traced program was loaded), else traced and compiled."""
+    where = exported.folder()
+    if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1:
+        path = os.path.join(where, f"epoch-{exported.program_key(config, env.physics_id, programs.devices)}.jax")
+        try:
+            compiled, loaded = exported.compile_epoch(programs.epoch, state, path, log)
+            if loaded:
+                log(f"the traced epoch program loaded from {path}")
+            return compiled
+        except Exception as err:  # a program jax.export refuses: traced as before
+            first = (str(err).splitlines() or [""])[0][:120]
+            log(f"the epoch is traced in this process ({type(err).__name__}: {first})")
+    return programs.epoch.lower(state).compile()
 
 
 def train(
