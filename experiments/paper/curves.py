@@ -1,13 +1,15 @@
 """The learning curves (paper Fig. 4): every agent on every task, the same budget for
 every agent of a task.
 
-    python -m experiments.paper.curves [--tasks a,b] [--agents x,y] [--seeds 5] [--seed 0] [--epochs N]
+    python -m experiments.paper.curves [--tasks a,b] [--agents x,y] [--seeds N] [--seed 0] [--epochs N]
         [--out results/curves] [--held-starts] [--dry-run | --report] [--last-n 10]
         [any learner or network option of experiments.run]
 
 The grid is the tasks planar_reach, ur5_reach, nicol_slide and nicol_lift × the five agents of
 `bidal_jax.config.AGENTS`; `--tasks` and `--agents` (comma lists) take a part of it. Each run
-is `--seeds` seeds vmapped as one program, in OUT/<task>/<agent>.
+is its task's seeds vmapped as one program, in OUT/<task>/<agent>: 5, and 10 on nicol_lift, whose
+fraction of seeds that lift the claims compare with an exact test (`protocol.SEEDS`; `--seeds N` sets every
+run's).
 
 Budget: one epoch count per task for every agent (`EPOCHS`, overridden for all tasks by
 `--epochs`): planar_reach 40, ur5_reach 30, nicol_slide 100, nicol_lift 100. These are the env
@@ -70,7 +72,7 @@ from bidal_jax.run import multihost
 from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
-from experiments.paper.protocol import EPOCHS, TASKS  # the budget: epochs per task, for every agent
+from experiments.paper.protocol import DEFAULT_SEEDS, EPOCHS, SEEDS, TASKS  # the budget: epochs per task
 
 PROG = "python -m experiments.paper.curves"
 STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
@@ -95,7 +97,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})"
     )
     parser.add_argument("--agents", default=",".join(AGENTS), help="comma list of agents (default all five)")
-    parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped as one program")
+    parser.add_argument("--seeds", type=int, default=None, help="seeds of every run, vmapped as one program "
+                        f"(default {DEFAULT_SEEDS}, nicol_lift {SEEDS['nicol_lift']})")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
     parser.add_argument(
         "--epochs",
@@ -136,7 +139,7 @@ def make_arms(
             given = {
                 "env": task,
                 "agent": agent,
-                "seeds": args.seeds,
+                "seeds": args.seeds or SEEDS.get(task, DEFAULT_SEEDS),
                 "seed": args.seed,
                 **extra,
                 **held,
@@ -155,6 +158,7 @@ def estimate(arm: Arm, status: grid.Status) -> float:
         return 0.0
     kind = "image" if arm.config.agent.uses_image else "proprio"
     per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
+    per_epoch *= arm.config.run.seeds / DEFAULT_SEEDS  # measured at 5 seeds; more cost at most in proportion
     return compile_s + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
 
 
@@ -172,7 +176,8 @@ def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
     lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
     lines.append(
         f"estimated time: {duration(sum(seconds))} on one GPU running the runs one after another "
-        "(an estimate from measured 5-seed programs of the default sizes, compilation included)"
+        "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
+        "included)"
     )
     stale = sum(status.state == "stale" for status in statuses)
     if stale:

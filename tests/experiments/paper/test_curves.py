@@ -69,19 +69,19 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
     for task in TASKS:
         for agent in config_lib.AGENTS:
             assert (
-                f"{task} {agent}, 5 seed(s), exploration starts 0; " in printed
+                f"{task} {agent}, {10 if task == 'nicol_lift' else 5} seed(s), exploration starts 0; " in printed
                 and f"{out}/{task}/{agent} [new]" in printed
             )
     assert (
-        f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
-        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 4,393 s"
+        f"nicol_lift visual_bidal, 10 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 8,613 s"  # 173 s + 100 × 42.2 s × 10 / 5
     ) in lines
     assert (
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 78 s"
     ) in lines
-    # (96 + 4 × 468) + (78 + 4 × 261) + (1,198 + 4 × 1,882) + (1,388 + 4 × 4,393)
-    assert "estimated time: 30,776 s (8.5 h) on one GPU running the runs one after another" in printed
+    # (96 + 4 × 468) + (78 + 4 × 261) + (1,198 + 4 × 1,882) + (2,628 + 4 × 8,613): nicol_lift's 10 seeds
+    assert "estimated time: 48,896 s (13.6 h) on one GPU running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
@@ -113,8 +113,9 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     printed = capsys.readouterr().out
     assert no_nicol == []
     assert "[done]; estimated 0 s" in printed
-    assert "[resume, checkpoint at epoch 1]; estimated 80 s" in printed  # 60 s compile + 2 epochs × 10.2 s
-    assert "[new]; estimated 91 s" in printed
+    # 60 s compile + 2 epochs × 10.2 s at 5 seeds, × 2 / 5 at SMALL's 2 seeds
+    assert "[resume, checkpoint at epoch 1]; estimated 68 s" in printed
+    assert "[new]; estimated 72 s" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 0
     assert no_nicol == [
         ("prepare", interrupted, True, False),
@@ -205,7 +206,7 @@ def test_held_starts_changes_only_nicol_lift_and_writes_elsewhere(tmp_path, monk
     monkeypatch.chdir(tmp_path)
     assert curves.main(["--held-starts", "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert "nicol_lift multimodal_bidal, 5 seed(s), exploration starts 0.5; " in printed
+    assert "nicol_lift multimodal_bidal, 10 seed(s), exploration starts 0.5; " in printed
     assert "nicol_slide multimodal_bidal, 5 seed(s), exploration starts 0; " in printed
     assert "results/curves-held/nicol_lift/multimodal_bidal [new]" in printed and "results/curves/" not in printed
     assert not (tmp_path / "results").exists()
@@ -320,8 +321,8 @@ def test_training_refuses_stale_runs_before_any_trains(tmp_path, no_nicol, fake_
     before = {d: sorted(os.walk(d)) for d in (old, other)}
     assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert f"{old} [stale: trained on other physics]; estimated 91 s" in printed  # counted from the start
-    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 91 s" in printed
+    assert f"{old} [stale: trained on other physics]; estimated 72 s" in printed  # counted from the start
+    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 72 s" in printed
     assert "stale: 2 of 3 runs; training refuses them" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 2
     assert no_nicol == []  # the first run, new, was not trained either
