@@ -92,7 +92,8 @@ def _load(path: str, avals: list) -> Any:
 def _save(path: str, program: Any, log: Callable[[str], None]) -> None:
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
-        write_atomic(path, bytes(program.serialize()))
+        # several processes of one program (a grid's cells) may save it at once: a temporary file each
+        write_atomic(path, bytes(program.serialize()), tmp=f"{path}.{os.getpid()}.tmp")
     except OSError as err:
         log(f"the traced program was not saved ({err.strerror or err}); a later run traces it again")
 

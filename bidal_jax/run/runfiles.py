@@ -89,10 +89,11 @@ def number(path: str, row: dict[str, str], column: str) -> float:
         raise RunFileError(f"{path}: damaged: {column} {row[column]!r} is not a number") from None
 
 
-def write_atomic(path: str, text: str | bytes) -> None:
-    """Write `text` (or bytes) to `path` through `PATH.tmp`: a reader never sees half of it, and a failed write
-    (no space, permissions) deletes the temporary file before its error goes on."""
-    tmp = path + TMP_SUFFIX
+def write_atomic(path: str, text: str | bytes, tmp: str | None = None) -> None:
+    """Write `text` (or bytes) to `path` through `tmp` (default `PATH.tmp`; one of its own for each of several
+    processes that may write `path` at once): a reader never sees half of it, and a failed write (no space,
+    permissions) deletes the temporary file before its error goes on."""
+    tmp = tmp or path + TMP_SUFFIX
     try:
         with open(tmp, "wb") if isinstance(text, bytes) else open(tmp, "w", newline="") as f:
             f.write(text)
