@@ -2,8 +2,9 @@
 
 The scene (`assets/nicol.xml`, documented in `assets/README.md`) is NICOL's right
 OpenManipulator-P arm with a simplified RH8D hand at a table, a 0.05 m cube and a dark
-red ellipsoid goal marker, seen by a fixed camera over the table in front of the robot and to its
-right (the hand never hides the cube from it: `python -m experiments.probes.visibility`).
+red ellipsoid goal marker, seen by a fixed camera on the robot's right a little above the table
+(the hand, which holds the cube from above, does not hide it from there:
+`python -m experiments.probes.visibility`).
 
 Action (A = 7, paper Table I), each entry in [-1, 1]:
   0-2  hand position increment in Cartesian space, at most `MAX_MOVE` = 0.05 m per axis;

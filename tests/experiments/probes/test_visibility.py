@@ -1,5 +1,8 @@
 """The visibility probe (experiments/probes/visibility.py) and what the NICOL camera must show (docs/tasks.md,
-"camera"): the cube stays in view where the hand is at it and where the hand holds it."""
+"camera"): the cube stays in view where the hand is at it and where the hand holds it, and the frame holds
+every place the task uses."""
+
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -45,6 +48,24 @@ def test_the_cube_stays_in_view_under_and_in_the_hand(lift):
     poses = np.concatenate([np.asarray(lift._held_qpos)[None], under_hand[None], starts])
     pixels = _cube_pixels(lift, poses)
     assert pixels.min() >= visibility.VISIBLE_PX, pixels
+
+
+def test_every_place_the_task_uses_projects_inside_the_frame(lift):
+    """The corners of the slide area on the table, of the lift goals' box and of the hand's workspace box all
+    project inside the 42×42 frame, so that cube, goal marker and hand stay in view wherever the task takes them."""
+    centre = np.asarray(lift._cube_centre)
+    slide = nicol.CUBE_START_RANGE + nicol.SLIDE_GOAL_RANGE
+    lift_xy = nicol.CUBE_START_RANGE + nicol.LIFT_GOAL_RANGE
+    boxes = {
+        "slide area": ([centre[0] - slide, centre[0] + slide], [centre[1] - slide, centre[1] + slide],
+                       [nicol.TABLE_HEIGHT]),
+        "lift goals": ([centre[0] - lift_xy, centre[0] + lift_xy], [centre[1] - lift_xy, centre[1] + lift_xy],
+                       [nicol.TABLE_HEIGHT + nicol.CUBE_HALF, nicol.TABLE_HEIGHT + nicol.LIFT_HEIGHT[1]]),
+        "hand workspace": tuple(zip(nicol.WORKSPACE_LOW, nicol.WORKSPACE_HIGH)),
+    }
+    for name, box in boxes.items():
+        pixels = np.array([lift.camera.project(np.array(corner)) for corner in itertools.product(*box)])
+        assert (pixels >= 0).all() and (pixels < lift.camera.resolution).all(), (name, pixels)
 
 
 def test_the_probe_prints_a_row_per_phase_and_appends_it_to_out(tmp_path, capsys):
