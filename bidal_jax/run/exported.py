@@ -113,7 +113,11 @@ def compile_epoch(epoch: Callable, state: Any, path: str, log: Callable[[str], N
 
         program = jax.export.export(jax.jit(flat))(*[jax.ShapeDtypeStruct(*a) for a in avals])
         _save(path, program, log)
-    compiled = jax.jit(program.call, donate_argnums=tuple(range(len(leaves)))).lower(*leaves).compile()
+    def epoch_program(*xs):
+        return program.call(*xs)
+
+    epoch_program.__name__ = "epoch"  # jit_epoch, as the traced program is named, in the cache and in profiles
+    compiled = jax.jit(epoch_program, donate_argnums=tuple(range(len(leaves)))).lower(*leaves).compile()
 
     def run(state: Any) -> tuple[Any, dict]:
         new, metrics = compiled(*jax.tree.leaves(state))
