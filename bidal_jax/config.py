@@ -39,6 +39,11 @@ def text(what: str) -> Rule:
     return Rule(str, lambda v: True, what)
 
 
+def one_of(values: tuple[str, ...]) -> Rule:
+    """The rule of a field that takes one of `values`, each named in its message."""
+    return Rule(str, lambda v: v in values, "one of " + ", ".join(values))
+
+
 def _strides(v: str) -> bool:
     try:
         parse_strides(v)
@@ -84,14 +89,14 @@ class NetworkConfig:
         "how the vision branch's convs are computed: 'patch' (strided slices and one matmul: 3-4× faster than 'native' "
         "on XLA:CPU, about 5× on one H100) or 'native' (XLA's convolution, cuDNN on a GPU); the same function and "
         "parameters, so runs of either compare and resume alike",
-        Rule(str, lambda v: v in CONV_IMPLS, "one of " + ", ".join(CONV_IMPLS)),
+        one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(
         "float32",
         "the dtype the vision branch computes in: float32, or bfloat16 (mixed precision: its convs and dense "
         "layer in bfloat16, parameters, gradients, optimiser state and every other network in float32; about "
         "half the memory traffic of the image updates; docs/results.md, 'Image updates')",
-        Rule(str, lambda v: v in VISION_DTYPES, "one of " + ", ".join(VISION_DTYPES)),
+        one_of(VISION_DTYPES),
     )
     vision_features: int = doc(64, "width of the dense layer that ends the vision branch", POSITIVE_INT)
     proprio_features: int = doc(64, "width of the proprio branch's dense layer", POSITIVE_INT)
@@ -149,7 +154,7 @@ class TrainConfig:
         "from them, e.g. obj_rel_pos = obj_pos - ee_pos, as from estimated poses), 'literal' (the noise segments "
         "alone, the paper's literal reading) or 'noisy_goal' ('derived', and the achieved goal the agent stores "
         "and relabels with is the noisy estimate too); rewards and success are always judged on the true state",
-        Rule(str, lambda v: v in NOISE_VARIANTS, "one of " + ", ".join(NOISE_VARIANTS)),
+        one_of(NOISE_VARIANTS),
     )
     her_k: int = doc(
         4, "HER 'future' relabelling ratio k: a goal is relabelled with prob. 1 - 1/(1+k)",
@@ -211,7 +216,7 @@ class RunConfig:
         "the proprio normaliser of a run started by --init-from: fresh (zero counts: the statistics of this run's "
         "task alone, the encoder's weights still the source's) or inherit (the source's statistics and counts, "
         "its rows matched by segment name, continued here; docs/deviations.md, Transfer normaliser)",
-        Rule(str, lambda v: v in INIT_NORMALISERS, f"one of {', '.join(INIT_NORMALISERS)}"),
+        one_of(INIT_NORMALISERS),
     )
 
 
