@@ -113,6 +113,7 @@ def compile_epoch(epoch: Callable, state: Any, path: str, log: Callable[[str], N
 
         program = jax.export.export(jax.jit(flat))(*[jax.ShapeDtypeStruct(*a) for a in avals])
         _save(path, program, log)
+
     def epoch_program(*xs):
         return program.call(*xs)
 
