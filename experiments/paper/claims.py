@@ -234,12 +234,18 @@ def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale
     return rows
 
 
+def best_other(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool) -> str:
+    """The agent other than OURS, with a run on every one of `tasks`, whose seeds' `values` are best on average over
+    them (largest, or smallest where `higher` is False)."""
+    others = [a for a in AGENTS if a != OURS and all((t, a) in values for t in tasks)]
+    return (max if higher else min)(others, key=lambda a: np.mean([values[t, a].mean() for t in tasks]))
+
+
 def margin(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool, digits: int = 3
            ) -> tuple[str, str, float, float]:
     """(the best other agent by the mean over `tasks` of its seeds' `values`, text, low, high) of OURS − that
     agent (`difference`: seeds resampled within each task); `higher`: whether larger values are better."""
-    others = [a for a in AGENTS if a != OURS and all((t, a) in values for t in tasks)]
-    best = (max if higher else min)(others, key=lambda a: np.mean([values[t, a].mean() for t in tasks]))
+    best = best_other(values, tasks, higher)
     text, low, high = difference([values[t, OURS] for t in tasks], [values[t, best] for t in tasks], digits)
     return best, text, low, high
 
@@ -293,7 +299,7 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -
         why = f"{NOT_MEASURED}: {LIFT} missing"
         return [overall, *(Claim(c, "—", p, why, "") for c, p in names[1:])]
     final = {key: f[FINAL][0] for key, f in figures.items()}
-    margins = {t: final[t, OURS].mean() - final[t, margin(final, [t], True)[0]].mean() for t in tasks}
+    margins = {t: final[t, OURS].mean() - final[t, best_other(final, [t], True)].mean() for t in tasks}
     checks, texts = speed(figures, measured.budgets, [LIFT], share=False)
     checks += [FAVOURS if margins[LIFT] > margins[t] else AGAINST for t in tasks if t != LIFT]
     rest = ", ".join(f"{t} {margins[t]:+.3f}" for t in tasks if t != LIFT)
