@@ -38,9 +38,11 @@ class PatchConv(nn.Module):
 
     Same result and parameter layout (kernel [k, k, C, F], bias [F]) as `nn.Conv`, but
     XLA's CPU backend runs this form 3-4× faster inside the training loop's `lax.scan`,
-    where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `native`
-    computes the same convolution with XLA's convolution op instead (`NetworkConfig.conv_impl`;
-    cuDNN on a GPU), same parameters. It computes in the dtype of `x` (float32 parameters cast to it):
+    where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `impl`
+    (`NetworkConfig.conv_impl`) picks how the same convolution is computed, same parameters: "patch" concatenates
+    the k² strided slices into patches [B, H', W', k²C] and multiplies them by the kernel once; "taps" multiplies
+    each slice by its kernel tap and sums, with no patch tensor; "native" is XLA's convolution op (cuDNN on a GPU).
+    It computes in the dtype of `x` (float32 parameters cast to it):
     with bfloat16 input its patches, matmul and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
 
@@ -48,7 +50,7 @@ class PatchConv(nn.Module):
     kernel: int = 3
     stride: int = 2
     padding: str = "SAME"
-    native: bool = False
+    impl: str = "patch"  # NetworkConfig.conv_impl: "patch", "taps" or "native"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -63,18 +65,14 @@ class PatchConv(nn.Module):
             out_h, out_w = (height - k) // s + 1, (width - k) // s + 1
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features)).astype(x.dtype)
         bias = self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
-        if self.native:  # x is padded already: a VALID convolution gives the out_h × out_w map
+        if self.impl == "native":  # x is padded already: a VALID convolution gives the out_h × out_w map
             return jax.lax.conv_general_dilated(x, kernel, (s, s), "VALID",
                                                 dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
-        patches = jnp.concatenate(
-            [
-                x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
-                for dy in range(k)
-                for dx in range(k)
-            ],
-            axis=-1,
-        )
-        return patches @ kernel.reshape(k * k * channels, self.features) + bias
+        taps = [x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
+                for dy in range(k) for dx in range(k)]
+        if self.impl == "taps":  # Σ over the k² taps of (strided slice) @ kernel[dy, dx]: no patch tensor
+            return sum(tap @ kernel[i // k, i % k] for i, tap in enumerate(taps)) + bias
+        return jnp.concatenate(taps, axis=-1) @ kernel.reshape(k * k * channels, self.features) + bias
 
 
 class VisionBranch(nn.Module):
@@ -89,7 +87,7 @@ class VisionBranch(nn.Module):
     channels: int
     features: int
     strides: tuple[int, ...] = (3, 2, 2, 2)
-    native: bool = False  # XLA's convolution op instead of slices and a matmul (PatchConv)
+    impl: str = "patch"  # how the convs are computed (PatchConv.impl)
     dtype: Any = jnp.float32  # what the layers compute in (parameters stay float32); the features come out float32
 
     @nn.compact
@@ -97,9 +95,9 @@ class VisionBranch(nn.Module):
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
         x = image.astype(self.dtype) / 255.0
         first, *rest = self.strides
-        x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", native=self.native)(x))
+        x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", impl=self.impl)(x))
         for stride in rest:
-            x = nn.elu(PatchConv(self.channels, stride=stride, native=self.native)(x))
+            x = nn.elu(PatchConv(self.channels, stride=stride, impl=self.impl)(x))
         x = x.reshape(x.shape[0], -1)
         return nn.elu(nn.Dense(self.features, dtype=self.dtype)(x)).astype(jnp.float32)
 
@@ -118,7 +116,7 @@ class Encoder(nn.Module):
         chex.assert_rank(proprio, 2)
         cfg = self.config
         parts = [VisionBranch(cfg.conv_channels, cfg.vision_features, parse_strides(cfg.conv_strides),
-                              native=cfg.conv_impl == "native", dtype=jnp.dtype(cfg.vision_dtype))(image)]
+                              impl=cfg.conv_impl, dtype=jnp.dtype(cfg.vision_dtype))(image)]
         if self.uses_proprio:
             parts.append(nn.elu(nn.Dense(cfg.proprio_features, name=PROPRIO_LAYER)(proprio)))
         x = nn.Dense(cfg.latent_size)(jnp.concatenate(parts, axis=-1))

@@ -17,7 +17,7 @@ buffer, draws its share of each batch and averages its gradients with the other 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -132,6 +132,51 @@ def normalized_batch(batch: dict, ts: TrainState, clip: float) -> dict:
     }
 
 
+@dataclasses.dataclass(frozen=True)
+class Learner:
+    """An agent's networks, its optimisers by update step name, and `update(ts, key) -> (ts, metrics)`: one
+    gradient step of each of the family's `update_order` steps on a batch sampled from `ts.buffer`."""
+
+    networks: Any
+    optimizers: dict[str, optax.GradientTransformation]
+    update: Callable
+
+
+def make_learner(env, config: Config, shards: Shards) -> Learner:
+    """The learner of `config`'s agent on `env`'s observations, one of `shards.count` env shards (it draws its
+    share of each batch and averages its gradients with the others'): what `make_train` runs after each rollout,
+    and what `experiments.bench.updates` times alone."""
+    train, agent, spec = config.train, config.agent, env.observation_spec
+    networks = agent.networks(config.network, spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)
+    losses, steps = agent.family.make_losses(networks, train), agent.family.update_order
+    optimizers = {step.name: optimizer(step.learning_rate(train), train.grad_clip) for step in steps}
+    future_p, n_batch = her_probability(train.her_k), train.batch_size // shards.count
+
+    def update(ts: TrainState, key: jax.Array) -> tuple[TrainState, dict]:
+        """One gradient step of each of the family's `update_order` steps (DDPG + BidAL: the representation
+        group, encoder, critic, f and g, then the actor), each on the parameters the earlier ones left."""
+        batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
+        batch = normalized_batch(batch, ts, train.clip_obs)
+        params, opt_state, metrics = ts.params, {}, {}
+        for step in steps:
+            trained = step.trained(params)
+            grads, aux = jax.grad(losses[step.name], has_aux=True)(trained, params, ts.target_params, batch)
+            updates, opt_state[step.name] = optimizers[step.name].update(
+                shards.average(grads), ts.opt_state[step.name], trained)
+            params = step.merged(params, optax.apply_updates(trained, updates))
+            batch = {**batch, **{name: aux.pop(name) for name in step.passes}}
+            metrics.update(aux)
+        ts = ts.replace(
+            params=params,
+            target_params=polyak(ts.target_params, params, train.tau),
+            opt_state=opt_state,
+            updates=ts.updates + 1,
+        )
+        return ts, metrics
+
+    return Learner(networks, optimizers, update)
+
+
 def make_train(env, config: Config, env_shards: int = 1):
     """Build `init(key) -> TrainState` and `epoch(TrainState) -> (TrainState, metrics)`.
 
@@ -143,10 +188,7 @@ def make_train(env, config: Config, env_shards: int = 1):
     with other random draws. What the env must offer is checked before (`run.validate`).
     """
     train, agent, spec = config.train, config.agent, env.observation_spec
-    networks = agent.networks(config.network, spec.proprio_size, spec.goal_size, env.action_size, spec.image_shape)
-    losses, steps = agent.family.make_losses(networks, train), agent.family.update_order
-    optimizers = {step.name: optimizer(step.learning_rate(train), train.grad_clip) for step in steps}
-    future_p = her_probability(train.her_k)
+    steps, future_p = agent.family.update_order, her_probability(train.her_k)
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
     noise_map = noise.noise_map(spec, noise.parse_segments(train.noise_segments), train.noise_variant)
     noisy = noise_map.indices
@@ -154,7 +196,9 @@ def make_train(env, config: Config, env_shards: int = 1):
         raise ConfigError(f"--noise-segments {train.noise_segments!r} runs with 1 env shard only "
                           f"(here {env_shards}; `device_layout` gives 1)")
     shards = Shards(env_shards)
-    n_envs, n_eval, n_batch = (n // env_shards for n in (train.num_envs, train.eval_envs, train.batch_size))
+    learner = make_learner(env, config, shards)
+    networks, optimizers, update = learner.networks, learner.optimizers, learner.update
+    n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
 
     def policy(ts: TrainState, explore: bool) -> acting.Policy:
         return acting.make_policy(networks, config, acting.acting_params(ts, agent.family.acting_networks), explore)
@@ -194,28 +238,6 @@ def make_train(env, config: Config, env_shards: int = 1):
             updates=jnp.zeros((), jnp.int32),
             epoch=jnp.zeros((), jnp.int32),
         )
-
-    def update(ts: TrainState, key: jax.Array):
-        """One gradient step of each of the family's `update_order` steps (DDPG + BidAL: the representation
-        group, encoder, critic, f and g, then the actor), each on the parameters the earlier ones left."""
-        batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
-        batch = normalized_batch(batch, ts, train.clip_obs)
-        params, opt_state, metrics = ts.params, {}, {}
-        for step in steps:
-            trained = step.trained(params)
-            grads, aux = jax.grad(losses[step.name], has_aux=True)(trained, params, ts.target_params, batch)
-            updates, opt_state[step.name] = optimizers[step.name].update(
-                shards.average(grads), ts.opt_state[step.name], trained)
-            params = step.merged(params, optax.apply_updates(trained, updates))
-            batch = {**batch, **{name: aux.pop(name) for name in step.passes}}
-            metrics.update(aux)
-        ts = ts.replace(
-            params=params,
-            target_params=polyak(ts.target_params, params, train.tau),
-            opt_state=opt_state,
-            updates=ts.updates + 1,
-        )
-        return ts, metrics
 
     def cycle(ts: TrainState, _):
         """Collect, insert, update the normalisers, then `updates_per_cycle` gradient steps."""

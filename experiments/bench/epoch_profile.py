@@ -18,10 +18,6 @@ more devices gain little (docs/results.md, "Where the time goes").
 from __future__ import annotations
 
 import argparse
-import collections
-import glob
-import gzip
-import json
 import os
 import time
 
@@ -31,34 +27,7 @@ import envs_mjx
 from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
 from experiments.bench.programs import parse_variant, seeded_program
-
-
-def summarise(events: list[dict], top: int = 10) -> list[dict]:
-    """Per (process, thread) of a Chrome/Perfetto trace's complete ("X") events: the seconds they
-    add up to, their count and the `top` names by seconds; largest total first."""
-    names = {
-        (e["pid"], None): e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
-    }
-    names.update(
-        {
-            (e["pid"], e["tid"]): e["args"]["name"]
-            for e in events
-            if e.get("ph") == "M" and e.get("name") == "thread_name"
-        }
-    )
-    seconds, count = collections.Counter(), collections.Counter()
-    by_name = collections.defaultdict(collections.Counter)
-    for e in events:
-        if e.get("ph") != "X":
-            continue
-        where = (names.get((e["pid"], None), str(e["pid"])), names.get((e["pid"], e["tid"]), str(e["tid"])))
-        seconds[where] += e.get("dur", 0) / 1e6
-        count[where] += 1
-        by_name[where][e["name"]] += e.get("dur", 0) / 1e6
-    return [
-        {"process": p, "thread": t, "seconds": s, "events": count[(p, t)], "top": by_name[(p, t)].most_common(top)}
-        for (p, t), s in seconds.most_common()
-    ]
+from experiments.bench.tracing import print_summary, traced
 
 
 def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10,
@@ -73,15 +42,7 @@ def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10,
         state, metrics = epoch(state)
         jax.block_until_ready(metrics)
         print(f"{label}: {time.perf_counter() - start:.2f} s", flush=True)
-    with jax.profiler.trace(out, create_perfetto_trace=True):
-        start = time.perf_counter()
-        state, metrics = epoch(state)
-        jax.block_until_ready(metrics)
-        wall = time.perf_counter() - start
-    newest = max(glob.glob(os.path.join(out, "**", "perfetto_trace.json.gz"), recursive=True), key=os.path.getmtime)
-    with gzip.open(newest) as f:
-        trace = json.load(f)
-    return wall, summarise(trace["traceEvents"] if isinstance(trace, dict) else trace, top)
+    return traced(lambda: epoch(state)[1], out, top)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -108,10 +69,7 @@ def main(argv: list[str] | None = None) -> None:
         f"{args.env} {args.agent} ({args.variant}), {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
         f"traced epoch {wall:.2f} s (profiling slows it); trace in {out}"
     )
-    for row in rows[: args.streams]:
-        print(f"\n{row['process']} / {row['thread']}: {row['seconds']:.3f} s in {row['events']:,} events")
-        for op, seconds in row["top"]:
-            print(f"  {seconds:8.3f} s  {op[:100]}")
+    print_summary(rows, args.streams)
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from bidal_jax.agents import ddpg
-from bidal_jax.config import AGENTS, NetworkConfig
+from bidal_jax.config import AGENTS, CONV_IMPLS, NetworkConfig
 from bidal_jax.networks import PatchConv
 
 
@@ -20,26 +20,28 @@ def test_every_agent_builds_the_networks_it_needs(agent):
     assert ("forward" in params) == models and ("inverse" in params) == models
 
 
-@pytest.mark.parametrize("native", [False, True])
+@pytest.mark.parametrize("impl", CONV_IMPLS)
 @pytest.mark.parametrize(
     "size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME"), (10, 1, "SAME")]
 )
-def test_patch_conv_equals_flax_conv(size, stride, padding, native):
+def test_patch_conv_equals_flax_conv(size, stride, padding, impl):
     x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
     reference = nn.Conv(5, (3, 3), strides=(stride, stride), padding=padding)
     params = reference.init(jax.random.PRNGKey(1), x)
-    ours = PatchConv(5, stride=stride, padding=padding, native=native).apply(params, x)
+    ours = PatchConv(5, stride=stride, padding=padding, impl=impl).apply(params, x)
     np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
 
 
+@pytest.mark.parametrize("impl", ["taps", "native"])
 @pytest.mark.parametrize("strides", ["3,2,2,2", "2,2,1,1"])
-def test_native_convs_are_the_same_encoder_with_the_same_parameters(strides):
-    """--conv-impl native: the parameter tree (a checkpoint) is the same, and so are φ(s) and its gradients."""
+def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, impl):
+    """--conv-impl taps or native: the parameter tree (a checkpoint) is the same as patch's, and so are φ(s) and its
+    gradients."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
 
-    patch, native = networks("patch"), networks("native")
+    patch, native = networks("patch"), networks(impl)
     params = patch.init(jax.random.PRNGKey(0))["encoder"]
     assert jax.tree.structure(native.init(jax.random.PRNGKey(0))["encoder"]) == jax.tree.structure(params)
     image = jax.random.randint(jax.random.PRNGKey(1), (3, 42, 42, 1), 0, 256).astype(np.uint8)

@@ -1,8 +1,10 @@
-"""experiments.bench.epoch_profile: the trace summary (a synthetic trace) and its option checks."""
+"""experiments.bench.epoch_profile: its option checks; experiments.bench.tracing: the trace summary (a synthetic
+trace)."""
 
 import pytest
 
 from experiments.bench import epoch_profile as bench_profile
+from experiments.bench import tracing
 
 
 def test_summarise_groups_by_stream_counts_events_and_ranks_operations():
@@ -15,7 +17,7 @@ def test_summarise_groups_by_stream_counts_events_and_ranks_operations():
         {"ph": "X", "pid": 2, "tid": 1, "name": "host_op", "dur": 1.0},  # no names: ids stand in
         {"ph": "i", "pid": 1, "tid": 7, "name": "instant"},  # not a complete event
     ]
-    rows = bench_profile.summarise(events, top=1)
+    rows = tracing.summarise(events, top=1)
     assert [(r["process"], r["thread"], r["events"]) for r in rows] == [
         ("/device:GPU:0", "Stream #14(Compute)", 3),
         ("2", "1", 1),

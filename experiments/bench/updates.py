@@ -1,0 +1,130 @@
+"""How fast the learner's gradient updates run alone, without physics: variants side by side.
+
+    python -m experiments.bench.updates --env nicol_lift --agent multimodal_bidal --seeds 5 \\
+        --variant preset net.vision_dtype=bfloat16 net.conv_impl=taps [--updates 200] [--profile DIR]
+
+Builds the preset's `init` and learner (`bidal_jax.train.make_learner`) as a run builds them, fills each seed's
+replay buffer (zeros, but full, so that batches are drawn from all of it) and times `--updates` gradient updates
+of all seeds at once: a jitted `lax.scan` of `update` under the seed `vmap`, as an epoch's cycle runs them. No
+env step is traced, so a variant compiles in seconds where an image agent's epoch takes minutes. Each `--variant`
+holds overrides of the preset as `experiments.bench.sweep` reads them (`k=v,net.k=v`). Per variant it prints the
+compilation's seconds, XLA's cost estimate of one update (FLOPs and bytes accessed), the warm milliseconds per update
+of all seeds (median of `--repeats` calls) and the speed-up over the first variant; `--profile DIR` also traces
+one warm call per variant and prints the kernels (device events) per update and the largest ones.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+
+import envs_mjx
+from bidal_jax import replay
+from bidal_jax.config import AGENTS, ConfigError
+from bidal_jax.run import validate
+from bidal_jax.train import Shards, make_learner, make_train
+from experiments.bench.programs import parse_variant, program_config
+from experiments.bench.tracing import print_summary, traced
+
+
+def full_buffer(ts):
+    """`ts` with its replay buffer counted as full: batches are drawn from every slot."""
+    return ts.replace(buffer=ts.buffer.replace(size=jnp.asarray(replay.capacity(ts.buffer), jnp.int32)))
+
+
+def update_program(name: str, agent: str, seeds: int, updates: int, variant: str):
+    """(the seeds' compiled program `run(ts, keys) -> (ts, metrics)` of `updates` gradient updates each, its
+    input state, its keys, the compile seconds) of `agent`'s preset on env `name` with `variant`'s overrides."""
+    train, network, _ = parse_variant(variant)
+    config = program_config(name, agent, train, network)
+    env = envs_mjx.make(name, render=config.agent.uses_image)
+    init, _ = make_train(env, config)
+    update = make_learner(env, config, Shards(1)).update
+
+    def run(ts, key):
+        return jax.lax.scan(update, ts, jax.random.split(key, updates))
+
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    ts = jax.jit(jax.vmap(lambda key: full_buffer(init(key))))(keys)
+    start = time.perf_counter()
+    compiled = jax.jit(jax.vmap(run), donate_argnums=0).lower(ts, keys).compile()
+    return compiled, ts, keys, time.perf_counter() - start
+
+
+def per_update_cost(compiled) -> tuple[float, float]:
+    """XLA's estimate of (FLOPs, bytes accessed) of one update of all seeds (NaN where it gives none): XLA's cost
+    analysis counts a loop's body once, so the program's figures are one update's. Its bytes count every operand
+    each fused kernel reads, an upper bound of the memory traffic."""
+    cost = compiled.cost_analysis()
+    cost = (cost[0] if cost else {}) if isinstance(cost, list) else (cost or {})
+    return cost.get("flops", float("nan")), cost.get("bytes accessed", float("nan"))
+
+
+def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, variant: str, profile: str) -> dict:
+    """Compile and time one variant (`update_program`): a row of the table, with the profile's summary rows."""
+    compiled, ts, keys, compile_s = update_program(name, agent, seeds, updates, variant)
+    flops, bytes_accessed = per_update_cost(compiled)
+    times = []
+    for _ in range(repeats + 1):  # the first call is a warm-up
+        start = time.perf_counter()
+        ts, metrics = compiled(ts, keys)
+        jax.block_until_ready(metrics)
+        times.append(time.perf_counter() - start)
+    row = {"variant": variant, "compile_s": compile_s, "gflop": flops / 1e9, "gb": bytes_accessed / 1e9,
+           "ms": 1e3 * statistics.median(times[1:]) / updates, "trace": []}
+    if profile:
+        out = os.path.join(profile, variant.replace("/", "_").replace(",", "_"))
+        _, row["trace"] = traced(lambda: compiled(ts, keys)[1], out)
+    return row
+
+
+def kernels_per_update(trace: list[dict], updates: int) -> float | None:
+    """Events of the busiest device stream of a traced call, per update (None without a device stream)."""
+    streams = [r for r in trace if r["process"].startswith("/device:")]
+    return max(r["events"] for r in streams) / updates if streams else None
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m experiments.bench.updates", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--env", default="nicol_lift", choices=envs_mjx.names())
+    parser.add_argument("--agent", default="multimodal_bidal", choices=list(AGENTS))
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--updates", type=int, default=200, help="gradient updates per timed call")
+    parser.add_argument("--repeats", type=int, default=3, help="timed calls per variant (after one warm-up)")
+    parser.add_argument("--variant", nargs="+", default=["preset"],
+                        help="k=v,net.k=v overrides of the preset, one per variant (as experiments.bench.sweep's)")
+    parser.add_argument("--profile", default="", help="trace one warm call per variant into this folder")
+    args = parser.parse_args(argv)
+    bad = [f"--{field} {getattr(args, field)}" for field in ("updates", "repeats") if getattr(args, field) < 1]
+    if bad:
+        raise SystemExit(f"error: {bad[0]}: a positive integer is allowed")
+    try:
+        validate.check_field("seeds", args.seeds)
+        rows = [measure(args.env, args.agent, args.seeds, args.updates, args.repeats, v, args.profile)
+                for v in args.variant]
+    except ConfigError as err:
+        raise SystemExit(f"error: {err}") from err
+    device = jax.devices()[0]
+    print(f"{args.env} {args.agent}, {args.seeds} seed(s), {args.updates} updates a call, on {device.platform} "
+          f"({device.device_kind}); ms: warm milliseconds per update of all seeds, median of {args.repeats}")
+    print("\n| variant | compile (s) | GFLOP / update | GB accessed / update | ms / update | speed-up "
+          "| kernels / update |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for row in rows:
+        kernels = kernels_per_update(row["trace"], args.updates)
+        print(f"| {row['variant']} | {row['compile_s']:.1f} | {row['gflop']:.2f} | {row['gb']:.2f} | {row['ms']:.3f} "
+              f"| {rows[0]['ms'] / row['ms']:.2f}× | {'–' if kernels is None else f'{kernels:.0f}'} |")
+    for row in rows:
+        device_rows = [r for r in row["trace"] if r["process"].startswith("/device:")]
+        if device_rows:
+            print(f"\n## {row['variant']}")
+            print_summary(device_rows, 2)
+
+
+if __name__ == "__main__":
+    main()

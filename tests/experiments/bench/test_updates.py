@@ -1,0 +1,33 @@
+"""experiments.bench.updates: the updates-only program runs the learner's updates on a full buffer; option checks."""
+
+import jax
+import numpy as np
+import pytest
+
+from experiments.bench import updates as bench_updates
+
+TINY = "batch_size=8,buffer_episodes=32,num_envs=16,net.hidden_size=16,net.embed_size=8"
+
+
+def test_the_program_runs_the_asked_updates_of_every_seed_on_a_full_buffer():
+    compiled, ts, keys, compile_s = bench_updates.update_program("planar_reach", "proprio_baseline", 2, 3, TINY)
+    assert compile_s > 0
+    np.testing.assert_array_equal(ts.buffer.size, [32, 32])  # batches are drawn from every slot
+    after, metrics = compiled(ts, keys)
+    np.testing.assert_array_equal(after.updates, [3, 3])
+    assert jax.tree.leaves(metrics)[0].shape[:2] == (2, 3)  # [seeds, updates]
+
+
+def test_kernels_per_update_reads_the_busiest_device_stream():
+    trace = [{"process": "/host:CPU", "events": 900}, {"process": "/device:GPU:0", "events": 500},
+             {"process": "/device:GPU:0", "events": 40}]
+    assert bench_updates.kernels_per_update(trace, 100) == 5.0
+    assert bench_updates.kernels_per_update(trace[:1], 100) is None
+
+
+@pytest.mark.parametrize("args, message", [(["--updates", "0"], "--updates 0"), (["--repeats", "-1"], "--repeats -1"),
+                                           (["--seeds", "0"], "seeds")])
+def test_bad_counts_stop_with_one_line(args, message, capsys):
+    with pytest.raises(SystemExit) as stop:
+        bench_updates.main(args)
+    assert message in str(stop.value) and "\n" not in str(stop.value)
