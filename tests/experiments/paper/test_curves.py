@@ -3,7 +3,9 @@ training (`no_nicol` and `write_fake_run` of conftest.py): the plan and its esti
 task, resuming, stale runs, refusals, the held-starts variant and the report."""
 
 import csv
+import json
 import os
+import re
 import shlex
 
 import jax
@@ -86,16 +88,30 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
 
 
 @pytest.mark.parametrize("task", ["nicol_slide", "nicol_lift"])
-def test_the_nicol_estimates_are_the_grids_measured_times(task):
-    """`SECONDS` of the NICOL tasks are those the grid's own H100 runs in results/curves recorded (image: the
-    multimodal_bidal run), so the estimate follows the run folders, not a copied figure."""
-    for kind, agent in (("image", "multimodal_bidal"), ("proprio", "proprio_baseline")):
-        with open(os.path.join(REPO, "results", "curves", task, agent, "metrics.csv")) as f:
-            rows = list(csv.DictReader(f))
-        wall, epoch = ([float(row[key]) for row in rows] for key in ("wall_time", "epoch"))
-        per_epoch = (wall[-1] - wall[0]) / (epoch[-1] - epoch[0])
-        compile_s = float(rows[0]["wall_time_with_compile"]) - wall[0]
-        assert curves.SECONDS[task][kind] == pytest.approx((per_epoch, compile_s), abs=0.5), (kind, agent)
+def test_the_nicol_proprio_estimates_are_the_grids_measured_times(task):
+    """`SECONDS` of the NICOL proprio runs are those the grid's own H100 runs in results/curves recorded, so the
+    estimate follows the run folders, not a copied figure."""
+    with open(os.path.join(REPO, "results", "curves", task, "proprio_baseline", "metrics.csv")) as f:
+        rows = list(csv.DictReader(f))
+    wall, epoch = ([float(row[key]) for row in rows] for key in ("wall_time", "epoch"))
+    per_epoch = (wall[-1] - wall[0]) / (epoch[-1] - epoch[0])
+    compile_s = float(rows[0]["wall_time_with_compile"]) - wall[0]
+    assert curves.SECONDS[task]["proprio"] == pytest.approx((per_epoch, compile_s), abs=0.5)
+
+
+def test_the_nicol_image_estimates_are_todays_measured_times():
+    """`SECONDS` of the NICOL image runs are today's preset's measurements in results/scaling: nicol_slide's cold
+    sweep (its epochs' `process_seconds`) and nicol_lift's epoch profile (first and warm epoch)."""
+    with open(os.path.join(REPO, "results", "scaling", "nicol_slide-multimodal_bidal-cold.jsonl")) as f:
+        rows = [json.loads(line) for line in f]
+    per_epoch = (rows[-1]["process_seconds"] - rows[0]["process_seconds"]) / (rows[-1]["epoch"] - rows[0]["epoch"])
+    assert curves.SECONDS["nicol_slide"]["image"] == pytest.approx(
+        (per_epoch, rows[0]["variant_seconds"] - per_epoch), abs=0.5)
+    with open(os.path.join(REPO, "results", "scaling", "epoch-nicol_lift-taps-bf16.txt")) as f:
+        text = f.read()
+    first, warm = (float(re.search(rf"{label}: ([\d.]+) s", text).group(1))
+                   for label in (r"first epoch \(compilation included\)", "warm epoch, untraced"))
+    assert curves.SECONDS["nicol_lift"]["image"] == pytest.approx((warm, first - warm), abs=0.5)
 
 
 def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(tmp_path, no_nicol, fake_run, capsys):
