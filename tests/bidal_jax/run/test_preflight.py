@@ -29,7 +29,7 @@ BAD_COMMAND_LINES = {
         ["--conv-strides 2,2,1", "four comma-separated positive integers"],
     ),
     "zero conv stride": (["--conv-strides", "2,0,1,1"], ["--conv-strides 2,0,1,1", "four comma-separated"]),
-    "unknown conv implementation": (["--conv-impl", "fft"], ["--conv-impl fft", "one of patch, native"]),
+    "unknown conv implementation": (["--conv-impl", "fft"], ["--conv-impl fft", "one of patch, taps, native"]),
     "zero actor lr": (["--actor-lr", "0"], ["--actor-lr 0.0", "positive number"]),
     "negative critic lr": (["--critic-lr", "-0.001"], ["--critic-lr -0.001", "positive number"]),
     "nan lr": (["--critic-lr", "nan"], ["--critic-lr nan", "positive number, not nan"]),
