@@ -38,6 +38,9 @@ the held-out share, the probe underfits (more updates or a larger branch help); 
 overfits (more frames help). A full-size ur5_reach run for a GPU, e.g.:
 
     python -m experiments.probes.vision --envs ur5_reach --frames 64000 --steps 30000 --lr-final 0.1
+
+`--supersample N` renders the frames with N² rays per pixel instead of the env's own camera setting
+(`Env.camera_supersample`), to measure what a finer anti-aliased frame would give the agents.
 """
 
 from __future__ import annotations
@@ -57,6 +60,8 @@ import envs_mjx
 from bidal_jax.config import ConfigError, NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
 from bidal_jax.run import validate
+from envs_mjx.base import IMAGE_SHAPE
+from envs_mjx.camera import Camera
 from envs_mjx.nicol import NicolEnv
 from experiments import cli
 from experiments.probes import phases
@@ -212,6 +217,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="NICOL only: frames of this phase of scripted grasp and push episodes (experiments.probes.phases; "
              "e.g. contact: the hand at the cube) instead of start states",
     )
+    parser.add_argument(
+        "--supersample", type=int, default=0,
+        help="rays per pixel along each axis of the rendered frames (default 0: the env's own, 2 today)",
+    )
     parser.add_argument("--out", default="", help="also write the table to this file")
     return parser
 
@@ -223,12 +232,19 @@ def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]
         validate.check_field("conv_strides", text)
     strides = [parse_strides(text) for text in args.conv_strides]
     for flag, value, least in (("--frames", args.frames, 5), ("--steps", args.steps, 1), ("--batch", args.batch, 1),
-                               ("--random-steps", args.random_steps, 0)):
+                               ("--random-steps", args.random_steps, 0), ("--supersample", args.supersample, 0)):
         if value < least:
             raise ConfigError(f"{flag} {value}: must be an integer >= {least}")
     if not 0.0 <= args.lr_final <= 1.0:
         raise ConfigError(f"--lr-final {args.lr_final:g}: must be a share of --lr, between 0 and 1")
     return envs, strides
+
+
+def with_supersample(env, supersample: int):
+    """`env`, its camera casting `supersample`² rays per pixel where `supersample` is set (0: as built)."""
+    if supersample:
+        env.camera = Camera(env.mj_model, env.camera_name, IMAGE_SHAPE[0], supersample=supersample)
+    return env
 
 
 def check_target(target: str, envs: dict) -> None:
@@ -260,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         names, strides = checked(args)
-        envs = {name: envs_mjx.make(name, render=True) for name in names}
+        envs = {name: with_supersample(envs_mjx.make(name, render=True), args.supersample) for name in names}
         check_target(args.target, envs)
         if args.phase and not all(isinstance(env, NicolEnv) for env in envs.values()):
             raise ConfigError(f"--phase {args.phase}: NICOL envs only (nicol_slide, nicol_lift), not {args.envs}")

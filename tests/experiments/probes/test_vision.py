@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import envs_mjx
 from experiments.probes import vision as vision_probe
 
 
@@ -19,6 +20,7 @@ def test_located_is_the_share_within_epsilon():
     (["--steps", "0"], "error: --steps 0: must be an integer >= 1"),
     (["--random-steps", "-1"], "error: --random-steps -1: must be an integer >= 0"),
     (["--lr-final", "1.5"], "error: --lr-final 1.5: must be a share of --lr, between 0 and 1"),
+    (["--supersample", "-1"], "error: --supersample -1: must be an integer >= 0"),
     (["--envs", "planar_reach", "--target", "ee_pos"],
      "error: --target ee_pos: not a proprio segment of planar_reach; allowed: achieved_goal, q, qdot"),
 ])
@@ -36,6 +38,12 @@ def test_the_env_column_names_a_target_and_random_steps_only_where_not_the_defau
     assert vision_probe.label("nicol_slide", "ee_pos", 10) == "nicol_slide: ee_pos after 10 random actions"
 
 
+def test_supersample_recasts_the_camera_only_where_set():
+    env = envs_mjx.make("planar_reach", render=True)
+    assert vision_probe.with_supersample(env, 0).camera.supersample == env.camera_supersample
+    assert vision_probe.with_supersample(env, 3).camera.supersample == 3
+
+
 def test_the_learning_rate_falls_along_a_cosine_to_its_final_share():
     lrs = [float(vision_probe.schedule(1e-3, 100, 0.1)(t)) for t in (0, 50, 100)]
     np.testing.assert_allclose(lrs, [1e-3, 0.55e-3, 1e-4], rtol=1e-5)
@@ -46,6 +54,7 @@ def test_the_learning_rate_falls_along_a_cosine_to_its_final_share():
 @pytest.mark.parametrize("extra, env_column, located", [
     ([], "planar_reach", "goal"),  # the achieved goal (hand xy) of start states
     (["--target", "qdot", "--random-steps", "2"], "planar_reach: qdot after 2 random actions", "qdot"),
+    (["--supersample", "1"], "planar_reach", "goal"),
 ])
 def test_a_tiny_probe_writes_its_table(extra, env_column, located, tmp_path):
     out = tmp_path / "table.md"
