@@ -37,7 +37,8 @@ env column names the target and the random steps where they are not the defaults
 the held-out share, the probe underfits (more updates or a larger branch help); far above it, it
 overfits (more frames help). A full-size ur5_reach run for a GPU, e.g.:
 
-    python -m experiments.probes.vision --envs ur5_reach --frames 64000 --steps 30000 --lr-final 0.1
+    python -m experiments.probes.vision --envs ur5_reach --conv-strides 3,2,2,1 2,2,1,1 --frames 256000 \
+        --steps 50000 --lr 3e-3 --lr-final 0.1
 
 `--supersample N` renders the frames with N² rays per pixel instead of the env's own camera setting
 (`Env.camera_supersample`), to measure what a finer anti-aliased frame would give the agents.
@@ -137,20 +138,22 @@ def fit(model: Probe, key: jax.Array, images: np.ndarray, targets: np.ndarray, s
     key_init, key_batches = jax.random.split(key)
     params = model.init(key_init, images[:1])
     opt = optax.adam(schedule(lr, steps, lr_final))
-    images, targets = jnp.asarray(images), jnp.asarray(targets)
 
-    def loss(p, idx):
-        return jnp.mean((model.apply(p, images[idx]) - targets[idx]) ** 2)
+    # the frames are arguments of the compiled loop, not constants folded into it (hundreds of MB at full size)
+    @jax.jit
+    def train(p, keys, x, y):
+        def loss(p, idx):
+            return jnp.mean((model.apply(p, x[idx]) - y[idx]) ** 2)
 
-    def update(carry, k):
-        p, s = carry
-        grads = jax.grad(loss)(p, jax.random.randint(k, (batch,), 0, len(images)))
-        updates, s = opt.update(grads, s, p)
-        return (optax.apply_updates(p, updates), s), None
+        def update(carry, k):
+            p, s = carry
+            grads = jax.grad(loss)(p, jax.random.randint(k, (batch,), 0, len(images)))
+            updates, s = opt.update(grads, s, p)
+            return (optax.apply_updates(p, updates), s), None
 
-    (params, _), _ = jax.jit(lambda p, ks: jax.lax.scan(update, (p, opt.init(p)), ks))(
-        params, jax.random.split(key_batches, steps))
-    return params
+        return jax.lax.scan(update, (p, opt.init(p)), keys)[0][0]
+
+    return train(params, jax.random.split(key_batches, steps), jnp.asarray(images), jnp.asarray(targets))
 
 
 def located(pred: np.ndarray, goals: np.ndarray, epsilon: float) -> float:
@@ -219,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--supersample", type=int, default=0,
-        help="rays per pixel along each axis of the rendered frames (default 0: the env's own, 2 today)",
+        help="rays per pixel along each axis of the rendered frames (default 0: the env's own, Env.camera_supersample)",
     )
     parser.add_argument("--out", default="", help="also write the table to this file")
     return parser
