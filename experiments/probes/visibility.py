@@ -32,6 +32,7 @@ import numpy as np
 import envs_mjx
 from bidal_jax.config import ConfigError
 from envs_mjx.base import Env
+from envs_mjx.camera import visible_geoms
 from envs_mjx.nicol import NicolEnv
 from experiments import cli
 from experiments.probes.phases import PHASES_NICOL, SCRIPT_NOISE, nicol_rollouts
@@ -58,7 +59,9 @@ def body_groups(env: Env) -> dict[str, tuple[int, ...]]:
                 "hand": subtree_geoms(m, "r_hand")}
     names = [m.geom(g).name for g in range(m.ngeom)]
     goals = tuple(g for g, n in enumerate(names) if n.startswith("goal") or n == "target")
-    links = [(n, (g,)) for g, n in enumerate(names) if m.geom_bodyid[g] > 0 and g not in goals]
+    # a link's geoms the camera does not draw (e.g. ur5_reach's physical capsules in group 3) are not looked for
+    seen = set(visible_geoms(m))
+    links = [(n, (g,)) for g, n in enumerate(names) if m.geom_bodyid[g] > 0 and g not in goals and g in seen]
     return dict(links) | {"goal marker": goals}
 
 

@@ -29,10 +29,19 @@ workspace:
 Frames: `--frames` start states of `env.reset` (each task draws its start, e.g. the arm's joint
 angles or the cube's place, uniformly over the task's range: many distinct states, where the
 frames of an episode are alike), or the states `--random-steps` random actions later; a fifth
-held out. Training: Adam,
-`--steps` updates of `--batch` frames, on targets standardised by the training frames' mean
-and std. Prints a markdown table (one row per env and strides; the env column names the target and
-the random steps where they are not the defaults) and writes it to `--out`.
+held out. Training: Adam, `--steps` updates of `--batch` frames, on targets standardised by the
+training frames' mean and std; the learning rate `--lr` falls along a cosine to `--lr-final` times
+itself by the last update (1: constant). Prints a markdown table (one row per env and strides; the
+env column names the target and the random steps where they are not the defaults) and writes it to
+`--out`. The table also gives the share located on as many training frames as are held out: near
+the held-out share, the probe underfits (more updates or a larger branch help); far above it, it
+overfits (more frames help). A full-size ur5_reach run for a GPU, e.g.:
+
+    python -m experiments.probes.vision --envs ur5_reach --conv-strides 3,2,2,1 2,2,1,1 --frames 256000 \
+        --steps 50000 --lr 3e-3 --lr-final 0.1
+
+`--supersample N` renders the frames with N² rays per pixel instead of the env's own camera setting
+(`Env.camera_supersample`), to measure what a finer anti-aliased frame would give the agents.
 """
 
 from __future__ import annotations
@@ -52,6 +61,8 @@ import envs_mjx
 from bidal_jax.config import ConfigError, NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
 from bidal_jax.run import validate
+from envs_mjx.base import IMAGE_SHAPE
+from envs_mjx.camera import Camera
 from envs_mjx.nicol import NicolEnv
 from experiments import cli
 from experiments.probes import phases
@@ -115,25 +126,34 @@ def phase_frames(env, key: jax.Array, n: int, phase: str, target: str = ACHIEVED
     return images[order], labels[order]
 
 
-def fit(model: Probe, key: jax.Array, images: np.ndarray, targets: np.ndarray, steps: int, batch: int, lr: float):
-    """Parameters after `steps` Adam updates on the mean squared error, on random batches."""
+def schedule(lr: float, steps: int, lr_final: float) -> optax.Schedule:
+    """The learning rate of each update: `lr` falling along a cosine to `lr_final`·`lr` at update `steps`."""
+    return optax.cosine_decay_schedule(lr, steps, alpha=lr_final)
+
+
+def fit(model: Probe, key: jax.Array, images: np.ndarray, targets: np.ndarray, steps: int, batch: int, lr: float,
+        lr_final: float = 1.0):
+    """Parameters after `steps` Adam updates on the mean squared error, on random batches; the learning rate
+    decays from `lr` to `lr_final`·`lr` (`schedule`)."""
     key_init, key_batches = jax.random.split(key)
     params = model.init(key_init, images[:1])
-    opt = optax.adam(lr)
-    images, targets = jnp.asarray(images), jnp.asarray(targets)
+    opt = optax.adam(schedule(lr, steps, lr_final))
 
-    def loss(p, idx):
-        return jnp.mean((model.apply(p, images[idx]) - targets[idx]) ** 2)
+    # the frames are arguments of the compiled loop, not constants folded into it (hundreds of MB at full size)
+    @jax.jit
+    def train(p, keys, x, y):
+        def loss(p, idx):
+            return jnp.mean((model.apply(p, x[idx]) - y[idx]) ** 2)
 
-    def update(carry, k):
-        p, s = carry
-        grads = jax.grad(loss)(p, jax.random.randint(k, (batch,), 0, len(images)))
-        updates, s = opt.update(grads, s, p)
-        return (optax.apply_updates(p, updates), s), None
+        def update(carry, k):
+            p, s = carry
+            grads = jax.grad(loss)(p, jax.random.randint(k, (batch,), 0, len(images)))
+            updates, s = opt.update(grads, s, p)
+            return (optax.apply_updates(p, updates), s), None
 
-    (params, _), _ = jax.jit(lambda p, ks: jax.lax.scan(update, (p, opt.init(p)), ks))(
-        params, jax.random.split(key_batches, steps))
-    return params
+        return jax.lax.scan(update, (p, opt.init(p)), keys)[0][0]
+
+    return train(params, jax.random.split(key_batches, steps), jnp.asarray(images), jnp.asarray(targets))
 
 
 def located(pred: np.ndarray, goals: np.ndarray, epsilon: float) -> float:
@@ -142,21 +162,26 @@ def located(pred: np.ndarray, goals: np.ndarray, epsilon: float) -> float:
 
 
 def probe(images: np.ndarray, goals: np.ndarray, epsilon: float, strides: tuple[int, ...], key: jax.Array,
-          steps: int, batch: int, lr: float) -> dict:
+          steps: int, batch: int, lr: float, lr_final: float = 1.0) -> dict:
     """The probe's figures on the held-out share of `frames`' (images, goals): RMSE per target
-    dimension and share located within `epsilon`, of the probe and of the constant prediction."""
+    dimension and share located within `epsilon`, of the probe and of the constant prediction; and the
+    share located on as many training frames as are held out (overfitting shows as a gap)."""
     cut = int(round(len(images) * (1 - HELD_OUT)))
     (train_x, train_y), (test_x, test_y) = (images[:cut], goals[:cut]), (images[cut:], goals[cut:])
     mean, std = train_y.mean(0), train_y.std(0) + 1e-6
     model = Probe(goals.shape[-1], strides)
-    params = fit(model, key, train_x, (train_y - mean) / std, steps, batch, lr)
+    params = fit(model, key, train_x, (train_y - mean) / std, steps, batch, lr, lr_final)
     apply = jax.jit(model.apply)
-    pred = np.concatenate([np.asarray(apply(params, test_x[i:i + 1024])) for i in range(0, len(test_x), 1024)])
-    pred = pred * std + mean
+
+    def predict(x):
+        return np.concatenate([np.asarray(apply(params, x[i:i + 1024])) for i in range(0, len(x), 1024)]) * std + mean
+
+    pred = predict(test_x)
     return {
         "rmse": np.sqrt(np.mean((pred - test_y) ** 2, axis=0)),
         "constant_rmse": np.sqrt(np.mean((mean - test_y) ** 2, axis=0)),
         "located": located(pred, test_y, epsilon),
+        "located_training": located(predict(train_x[:len(test_x)]), train_y[:len(test_x)], epsilon),
         "constant": located(np.broadcast_to(mean, test_y.shape), test_y, epsilon),
         "frames": (len(train_x), len(test_x)),
     }
@@ -176,7 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--frames", type=int, default=16000, help="start-state frames per env, a fifth held out")
     parser.add_argument("--steps", type=int, default=3000, help="Adam updates of the probe")
     parser.add_argument("--batch", type=int, default=256, help="frames per update")
-    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate at the first update")
+    parser.add_argument(
+        "--lr-final", type=float, default=1.0,
+        help="the learning rate at the last update, as a share of --lr, reached along a cosine (default 1: constant)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="random seed of the frames and the probe")
     parser.add_argument(
         "--target", default=ACHIEVED_GOAL,
@@ -191,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="NICOL only: frames of this phase of scripted grasp and push episodes (experiments.probes.phases; "
              "e.g. contact: the hand at the cube) instead of start states",
     )
+    parser.add_argument(
+        "--supersample", type=int, default=0,
+        help="rays per pixel along each axis of the rendered frames (default 0: the env's own, Env.camera_supersample)",
+    )
     parser.add_argument("--out", default="", help="also write the table to this file")
     return parser
 
@@ -202,10 +235,19 @@ def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]
         validate.check_field("conv_strides", text)
     strides = [parse_strides(text) for text in args.conv_strides]
     for flag, value, least in (("--frames", args.frames, 5), ("--steps", args.steps, 1), ("--batch", args.batch, 1),
-                               ("--random-steps", args.random_steps, 0)):
+                               ("--random-steps", args.random_steps, 0), ("--supersample", args.supersample, 0)):
         if value < least:
             raise ConfigError(f"{flag} {value}: must be an integer >= {least}")
+    if not 0.0 <= args.lr_final <= 1.0:
+        raise ConfigError(f"--lr-final {args.lr_final:g}: must be a share of --lr, between 0 and 1")
     return envs, strides
+
+
+def with_supersample(env, supersample: int):
+    """`env`, its camera casting `supersample`² rays per pixel where `supersample` is set (0: as built)."""
+    if supersample:
+        env.camera = Camera(env.mj_model, env.camera_name, IMAGE_SHAPE[0], supersample=supersample)
+    return env
 
 
 def check_target(target: str, envs: dict) -> None:
@@ -228,7 +270,8 @@ def row(name: str, env, strides: tuple[int, ...], result: dict) -> str:
     rmse = ", ".join(f"{x:.3f} ({c:.3f})" for x, c in zip(result["rmse"], result["constant_rmse"]))
     return (
         f"| {name} | {','.join(map(str, strides))} | {env.epsilon:g} | {rmse} | {result['located']:.3f} | "
-        f"{result['constant']:.3f} | {result['frames'][0]:,} / {result['frames'][1]:,} |"
+        f"{result['located_training']:.3f} | {result['constant']:.3f} | "
+        f"{result['frames'][0]:,} / {result['frames'][1]:,} |"
     )
 
 
@@ -236,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         names, strides = checked(args)
-        envs = {name: envs_mjx.make(name, render=True) for name in names}
+        envs = {name: with_supersample(envs_mjx.make(name, render=True), args.supersample) for name in names}
         check_target(args.target, envs)
         if args.phase and not all(isinstance(env, NicolEnv) for env in envs.values()):
             raise ConfigError(f"--phase {args.phase}: NICOL envs only (nicol_slide, nicol_lift), not {args.envs}")
@@ -244,10 +287,10 @@ def main(argv: list[str] | None = None) -> int:
         return cli.exit_code(err)
     lines = [
         f"| env | conv strides | ε | held-out RMSE per {'goal' if args.target == ACHIEVED_GOAL else args.target} "
-        "dimension (constant prediction) | located (within ε) | "
+        "dimension (constant prediction) | located (within ε) | located, training frames | "
         "constant prediction | "
         "frames train / held out |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     print("\n".join(lines), flush=True)
     key_frames, key_fit = jax.random.split(jax.random.PRNGKey(args.seed))
@@ -258,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             images, goals = frames(env, key_frames, args.frames, args.random_steps, args.target)
         for s in strides:
-            result = probe(images, goals, env.epsilon, s, key_fit, args.steps, args.batch, args.lr)
+            result = probe(images, goals, env.epsilon, s, key_fit, args.steps, args.batch, args.lr, args.lr_final)
             lines.append(row(label(name, args.target, args.random_steps, args.phase), env, s, result))
             print(f"{lines[-1]}  ({time.time() - start:.0f} s)", flush=True)
             start = time.time()

@@ -11,8 +11,8 @@ import pytest
 
 from bidal_jax import acting
 from envs_mjx import ur5_reach
-from envs_mjx.base import IMAGE_SHAPE
-from envs_mjx.camera import Camera
+from envs_mjx.base import ASSETS_DIR, IMAGE_SHAPE
+from envs_mjx.camera import Camera, visible_geoms
 from envs_mjx.ur5_reach import UR5Reach, forward_kinematics
 
 N_RESETS = 2000
@@ -81,6 +81,28 @@ def test_model_follows_the_contract(env):
     assert cubes == ["goal_elbow", "goal_wrist", "goal_tool"]
     assert np.linalg.norm(m.opt.gravity) > 9.0
     assert env.n_substeps == 4
+
+
+def test_the_camera_draws_thick_massless_links_around_the_physical_ones(env):
+    """Each link's drawn capsule is massless, thicker than its physical one and on the same axis; the physical
+    one (the UR5's radius, mass and inertia) is in group 3, which the camera does not draw."""
+    m = env.mj_model
+    drawn = set(visible_geoms(m))
+    for name in ARM_GEOMS:
+        seen, physical = _id(m, mujoco.mjtObj.mjOBJ_GEOM, name), _id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{name}_mass")
+        assert seen in drawn and physical not in drawn and m.geom_group[physical] == 3
+        assert m.geom_bodyid[seen] == m.geom_bodyid[physical]
+        np.testing.assert_array_equal(m.geom_pos[seen], m.geom_pos[physical])
+        np.testing.assert_array_equal(m.geom_quat[seen], m.geom_quat[physical])
+        assert m.geom_size[seen][1] == m.geom_size[physical][1]  # half-length
+        assert m.geom_size[seen][0] >= m.geom_size[physical][0] + 0.02  # radius
+    # the massless capsules add nothing: every link body's mass and inertia are its physical capsules'
+    physical = mujoco.MjSpec.from_file(str(ASSETS_DIR / "ur5_reach.xml"))
+    for name in ARM_GEOMS:
+        physical.delete(physical.geom(name))
+    bare = physical.compile()
+    for field in ("body_mass", "body_inertia", "body_ipos", "body_iquat"):
+        np.testing.assert_array_equal(getattr(m, field), getattr(bare, field))
 
 
 def test_forward_kinematics_matches_mujoco_sites(env):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from envs_mjx import nicol
+from envs_mjx import nicol, ur5_reach
 from experiments.probes import visibility
 
 
@@ -76,3 +76,11 @@ def test_the_probe_prints_a_row_per_phase_and_appends_it_to_out(tmp_path, capsys
     assert all(row.split("|")[3].strip() == "4" for row in rows)
     assert out.read_text().count("| planar_reach") == 2
     assert visibility.main(["--env", "planar_reach", "--episodes", "0"]) == 2
+
+
+def test_a_reaching_arm_is_looked_for_in_the_geoms_the_camera_draws():
+    """ur5_reach's links are drawn by thick massless capsules; their physical capsules (group 3) are not seen
+    and are no rows of the probe."""
+    groups = visibility.body_groups(ur5_reach.UR5Reach())
+    assert list(groups) == ["shoulder_link", "upper_arm_link", "forearm_link", "wrist_stub", "goal marker"]
+    assert len(groups["goal marker"]) == 3
