@@ -1,6 +1,7 @@
 """Command-line smoke run: `python -m experiments.run` writes metrics, TensorBoard and a checkpoint."""
 
 import csv
+import gc
 import glob
 import json
 import os
@@ -10,7 +11,7 @@ import sys
 import pytest
 
 from bidal_jax.run import checkpoint
-from experiments import run
+from experiments import cli, run
 from tests import helpers
 
 TINY = [
@@ -52,7 +53,19 @@ def test_the_training_program_lands_in_the_runs_cache_even_where_jax_names_anoth
                           timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert glob.glob(str(ours / "jit_epoch-*")), sorted(os.listdir(ours)) if ours.exists() else "no cache folder"
+    # and the small programs compiled in a fraction of a second: the seeds' keys, an env's one-by-one operations
+    assert glob.glob(str(ours / "jit__threefry_split-*")), sorted(os.listdir(ours))
     assert not jaxs.exists()
+
+
+def test_a_command_leaves_its_objects_frozen_for_the_exit():
+    """`cli.command` freezes what is alive when its `main` returns, so that the exit skips collecting it."""
+    gc.unfreeze()
+    try:
+        assert cli.command(lambda: 0) == 0
+        assert gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
 
 
 def test_help_documents_every_option(capsys):
