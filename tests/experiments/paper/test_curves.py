@@ -76,14 +76,14 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
             )
     assert (
         f"nicol_lift visual_bidal, 10 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
-        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 8,613 s"  # 173 s + 100 × 42.2 s × 10 / 5
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 7,328 s"  # 147.7 s + 100 × 35.9 s × 10 / 5
     ) in lines
     assert (
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 78 s"
     ) in lines
-    # (96 + 4 × 468) + (78 + 4 × 261) + (1,198 + 4 × 1,882) + (2,628 + 4 × 8,613): nicol_lift's 10 seeds
-    assert "estimated time: 48,896 s (13.6 h) on one GPU running the runs one after another" in printed
+    # (96 + 4 × 468) + (78 + 4 × 261) + (1,198 + 4 × 1,484) + (2,628 + 4 × 7,328): nicol_lift's 10 seeds
+    assert "estimated time: 42,164 s (11.7 h) on one GPU running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
