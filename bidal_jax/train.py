@@ -17,7 +17,7 @@ buffer, draws its share of each batch and averages its gradients with the other 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,6 +66,25 @@ class Shards:
     def average(self, tree: Any) -> Any:
         """The mean over shards of a pytree (gradients, metrics)."""
         return tree if self.count == 1 else jax.lax.pmean(tree, ENV_AXIS)
+
+
+class Draws(NamedTuple):
+    """The parts of a `TrainState` that a phase's start draws anew: its key, its evaluation key and the
+    observation noise's state."""
+
+    key: jax.Array
+    eval_key: jax.Array
+    noise: noise.NoiseState | None
+
+
+class Phase(NamedTuple):
+    """What a phase of an epoch (a cycle, or a chunk of the evaluation) rolls out, and with which keys: its
+    episodes' starts, the rollout's key, and a cycle's keys of its updates and HER goals."""
+
+    starts: acting.Starts
+    key: jax.Array
+    key_updates: jax.Array
+    key_goals: jax.Array
 
 
 def optimizer(lr: float, grad_clip: float) -> optax.GradientTransformation:
@@ -199,26 +218,29 @@ def make_train(env, config: Config, env_shards: int = 1):
     learner = make_learner(env, config, shards)
     networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
+    cycles, n_chunks = train.cycles_per_epoch, -(-n_eval // n_envs)  # evaluation chunks of the collect width
 
-    def policy(ts: TrainState, explore: bool) -> acting.Policy:
+    def policy(ts: TrainState, explore: jax.Array) -> acting.Policy:
         return acting.make_policy(networks, config, acting.acting_params(ts, agent.family.acting_networks), explore)
 
-    def observer(ts: TrainState) -> acting.Observer | None:
-        """What the agent sees of an observation: with noise on the `noisy` features, if any."""
-        return (lambda obs, key: noise.observe(ts.noise, noise_map, obs, key)) if len(noisy) else None
+    def eval_rows(chunk: jax.Array) -> jax.Array:
+        """The evaluation episodes of chunk `chunk` [n_envs]: chunk·n_envs onwards; past n_eval the first
+        ones again (padding: rolled out, not counted)."""
+        return (chunk * n_envs + jnp.arange(n_envs)) % n_eval
 
-    def collect(ts: TrainState, key: jax.Array) -> tuple[dict, jax.Array]:
-        """One exploring episode in each of the shard's envs, as replay episodes; train success."""
-        key_start, key_steps = jax.random.split(key)
-        states = acting.start_states(env, key_start, n_envs, train.exploration_starts)
-        observe = observer(ts)
-        final, records = acting.rollout(
-            env, policy(ts, explore=True), key_steps, states=states, observe=observe,
-            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
-        )
-        last = final.obs if observe is None else observe(final.obs, jax.random.fold_in(key_steps, 2))
-        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
-        return episodes, shards.average(final.metrics["success"].mean())
+    def observer(ts: TrainState, evaluating: jax.Array, chunk: jax.Array) -> acting.Observer | None:
+        """What the agent sees of an observation: with noise on the `noisy` features, if any. A cycle draws
+        the noise of its n_envs episodes; an evaluation chunk takes its rows of the draw for all n_eval, as
+        one rollout of them (`acting.evaluate`) draws it."""
+        if not len(noisy):
+            return None
+
+        def observe(obs: dict, key: jax.Array) -> dict:
+            every = noise.draw(ts.noise, noise_map, key, (n_eval,))[eval_rows(chunk)]
+            return noise.noised(noise_map, obs, jnp.where(evaluating, every, noise.draw(ts.noise, noise_map, key,
+                                                                                        (n_envs,))))
+
+        return observe
 
     def init(key: jax.Array) -> TrainState:
         key_params, key_state = jax.random.split(key)
@@ -239,32 +261,77 @@ def make_train(env, config: Config, env_shards: int = 1):
             epoch=jnp.zeros((), jnp.int32),
         )
 
-    def cycle(ts: TrainState, _):
-        """Collect, insert, update the normalisers, then `updates_per_cycle` gradient steps."""
-        if len(noisy):  # σ from the clean history collected so far, before every rollout
-            ts = ts.replace(noise=noise.refresh(ts.noise, ts.buffer.episodes["clean"], ts.buffer.size))
-        key, key_rollout, key_updates, key_goals = jax.random.split(ts.key, 4)
-        episodes, train_success = collect(ts, shards.own_key(key_rollout))
+    def cycle_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array) -> tuple[Draws, Phase]:
+        """A cycle's keys and the starts of its n_envs exploring episodes (with `exploration_starts`); σ of
+        the observation noise from the clean history collected so far, before every rollout."""
+        if len(noisy):
+            draws = draws._replace(noise=noise.refresh(draws.noise, buffer.episodes["clean"], buffer.size))
+        key, key_rollout, key_updates, key_goals = jax.random.split(draws.key, 4)
+        key_start, key_steps = jax.random.split(shards.own_key(key_rollout))
+        starts = acting.draw_starts(key_start, n_envs, train.exploration_starts)
+        return draws._replace(key=key), Phase(starts, key_steps, key_updates, key_goals)
+
+    def eval_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array) -> tuple[Draws, Phase]:
+        """The epoch's evaluation key (drawn by chunk 0, after the last cycle) and the starts of chunk
+        `chunk`'s episodes, from `env.reset` as one rollout of all n_eval (`acting.evaluate`) draws them."""
+        key, key_eval = jax.random.split(draws.key)
+        first = chunk == 0
+        draws = draws._replace(key=jnp.where(first, key, draws.key),
+                               eval_key=jnp.where(first, key_eval, draws.eval_key))
+        key_eval = shards.own_key(draws.eval_key)
+        starts = acting.Starts(jax.random.split(jax.random.split(key_eval)[0], n_eval)[eval_rows(chunk)])
+        if train.exploration_starts > 0:  # shaped as a cycle's starts, none of them picked
+            starts = starts._replace(eased=starts.reset, pick=jnp.zeros((n_envs,), bool))
+        return draws, Phase(starts, key_eval, key_eval, key_eval)
+
+    def learn(ts: TrainState, phase: Phase, final: Any, records: tuple) -> tuple[TrainState, dict]:
+        """A cycle's learning from its rollout: insert its episodes, update the normalisers, then
+        `updates_per_cycle` gradient steps."""
+        last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
+                                                               jax.random.fold_in(phase.key, 2))
+        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
         # the goal normaliser sees the goals the critic will see: desired and HER-relabelled
-        goals = replay.her_goals(episodes, shards.own_key(key_goals), n_envs * env.episode_length, future_p)
+        goals = replay.her_goals(episodes, shards.own_key(phase.key_goals), n_envs * env.episode_length, future_p)
         ts = ts.replace(
-            key=key,
             buffer=replay.insert(ts.buffer, episodes),
             proprio_norm=normalizer.update(ts.proprio_norm, shards.everyone(episodes["proprio"])),
             goal_norm=normalizer.update(ts.goal_norm, shards.everyone(goals)),
             env_steps=ts.env_steps + train.num_envs * env.episode_length,
         )
-        ts, metrics = jax.lax.scan(update, ts, jax.random.split(key_updates, train.updates_per_cycle))
+        ts, metrics = jax.lax.scan(update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
+        train_success = shards.average(final.metrics["success"].mean())
         return ts, {**shards.average(jax.tree.map(jnp.mean, metrics)), "train_success": train_success}
 
+    learned = jax.jit(learn)  # one trace serves the program and the shapes of its metrics (`skip`)
+
+    def step(ts: TrainState, index: jax.Array) -> tuple[TrainState, tuple]:
+        """Phase `index` of an epoch: cycle `index`, or from `cycles_per_epoch` on, evaluation chunk
+        index - cycles_per_epoch. Both roll out n_envs episodes through the one traced env step, exploring
+        or greedy; a cycle then learns from its episodes, an evaluation chunk keeps their success."""
+        evaluating, chunk = index >= cycles, index - cycles
+        draws = Draws(ts.key, ts.eval_key, ts.noise)  # what a phase's start changes: not the whole state
+        draws, phase = jax.lax.cond(evaluating, eval_start, cycle_start, draws, ts.buffer, chunk)
+        ts = ts.replace(key=draws.key, eval_key=draws.eval_key, noise=draws.noise)
+        final, records = acting.rollout(
+            env, policy(ts, jnp.logical_not(evaluating)), phase.key, states=acting.states_at(env, phase.starts),
+            observe=observer(ts, evaluating, chunk),
+            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
+        )
+        shapes = jax.eval_shape(learned, ts, phase, final, records)[1]
+
+        def skip(ts: TrainState, *_) -> tuple[TrainState, dict]:
+            return ts, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+
+        ts, metrics = jax.lax.cond(evaluating, skip, learned, ts, phase, final, records)
+        return ts, (metrics, final.metrics["success"], final.info["goal"])
+
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
-        """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes."""
-        ts, metrics = jax.lax.scan(cycle, ts, None, length=train.cycles_per_epoch)
-        key, key_eval = jax.random.split(ts.key)
-        greedy = policy(ts, explore=False)
-        success, goals = acting.evaluate_goals(env, greedy, shards.own_key(key_eval), n_eval, observe=observer(ts))
-        ts = ts.replace(key=key, eval_key=key_eval, epoch=ts.epoch + 1)
-        metrics = {**jax.tree.map(jnp.mean, metrics), "eval_success": shards.average(success.mean()),
+        """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes, in one `lax.scan`."""
+        ts, (metrics, success, goals) = jax.lax.scan(step, ts, jnp.arange(cycles + n_chunks))
+        success = success[cycles:].reshape(-1)[:n_eval]
+        goals = goals[cycles:].reshape(-1, goals.shape[-1])[:n_eval]
+        ts = ts.replace(epoch=ts.epoch + 1)
+        metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),
                    "env_steps": ts.env_steps}
         for name, mask in env.goal_subsets(goals).items():  # e.g. nicol_lift's air goals: success among them
             hits, count = shards.average((success * mask).sum()), shards.average(mask.sum().astype(jnp.float32))
