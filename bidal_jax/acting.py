@@ -213,19 +213,11 @@ def rollout(
     return jax.lax.scan(body, states, (keys, keys if inputs is None else inputs))
 
 
-def evaluate_goals(
-    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None,
-    observe: Observer | None = None,
-) -> tuple[jax.Array, jax.Array]:
-    """(success, desired goal) of each episode, as `evaluate` runs them: float32 [n_episodes], [n_episodes, G]."""
-    final, _ = rollout(env, policy, key, n_episodes, states=states, observe=observe)
-    return final.metrics["success"], final.info["goal"]
-
-
 def evaluate(
     env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None,
     observe: Observer | None = None,
 ) -> jax.Array:
     """Success (paper Eq. 6 at the episode's last step, on the true state) of `policy` in each of
     `n_episodes` episodes from `env.reset`, or from the given batched `states`; float32 [n_episodes]."""
-    return evaluate_goals(env, policy, key, n_episodes, states, observe)[0]
+    final, _ = rollout(env, policy, key, n_episodes, states=states, observe=observe)
+    return final.metrics["success"]

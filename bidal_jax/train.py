@@ -2,8 +2,10 @@
 
 `epoch` is ONE jit-able function: a `lax.scan` over cycles of (vectorised rollout of all
 parallel envs with exploration, buffer insert, normaliser update, n gradient updates,
-target update after every gradient step), then deterministic evaluation rollouts. Both
-rollouts are `acting.rollout` with `acting.make_policy`. The agent's family (`bidal_jax.agents`)
+target update after every gradient step), then deterministic evaluation rollouts. The scan's
+phases are the cycles and then the evaluation in chunks of the cycles' width, each one
+`acting.rollout` with `acting.make_policy` (exploring switched off by a traced flag), so the
+program steps the env in one place and XLA compiles the physics once. The agent's family (`bidal_jax.agents`)
 declares the networks, the losses and the order of an update's steps; DDPG + BidAL's are
 `losses.py`'s (paper Eqs. 3-5, 7, 8). HER relabels with the `future` strategy inside `replay.sample`.
 
@@ -85,6 +87,13 @@ class Phase(NamedTuple):
     key: jax.Array
     key_updates: jax.Array
     key_goals: jax.Array
+
+
+def branch(pred: bool | jax.Array, on_true: Callable, on_false: Callable, *operands) -> Any:
+    """`lax.cond` on a traced `pred`; on a Python bool, the one branch it picks (the other is not traced)."""
+    if isinstance(pred, bool):
+        return (on_true if pred else on_false)(*operands)
+    return jax.lax.cond(pred, on_true, on_false, *operands)
 
 
 def optimizer(lr: float, grad_clip: float) -> optax.GradientTransformation:
@@ -218,17 +227,20 @@ def make_train(env, config: Config, env_shards: int = 1):
     learner = make_learner(env, config, shards)
     networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
-    cycles, n_chunks = train.cycles_per_epoch, -(-n_eval // n_envs)  # evaluation chunks of the collect width
+    # the evaluation runs in chunks of the cycles' width inside the cycles' scan, through the same traced env
+    # step, where they roll out exactly n_eval episodes; otherwise (e.g. 128 of 2,048 envs) as a rollout of its
+    # own, since padding it to the cycles' width would cost physics every epoch
+    cycles, chunks = train.cycles_per_epoch, n_eval // n_envs if n_eval % n_envs == 0 else 0
+    eval_width = n_envs if chunks else n_eval
 
-    def policy(ts: TrainState, explore: jax.Array) -> acting.Policy:
+    def policy(ts: TrainState, explore: bool | jax.Array) -> acting.Policy:
         return acting.make_policy(networks, config, acting.acting_params(ts, agent.family.acting_networks), explore)
 
-    def eval_rows(chunk: jax.Array) -> jax.Array:
-        """The evaluation episodes of chunk `chunk` [n_envs]: chunk·n_envs onwards; past n_eval the first
-        ones again (padding: rolled out, not counted)."""
-        return (chunk * n_envs + jnp.arange(n_envs)) % n_eval
+    def eval_rows(chunk: jax.Array | int) -> jax.Array:
+        """The evaluation episodes of chunk `chunk` [eval_width]: chunk·eval_width onwards."""
+        return chunk * eval_width + jnp.arange(eval_width)
 
-    def observer(ts: TrainState, evaluating: jax.Array, chunk: jax.Array) -> acting.Observer | None:
+    def observer(ts: TrainState, evaluating: bool | jax.Array, chunk: jax.Array | int) -> acting.Observer | None:
         """What the agent sees of an observation: with noise on the `noisy` features, if any. A cycle draws
         the noise of its n_envs episodes; an evaluation chunk takes its rows of the draw for all n_eval, as
         one rollout of them (`acting.evaluate`) draws it."""
@@ -236,9 +248,9 @@ def make_train(env, config: Config, env_shards: int = 1):
             return None
 
         def observe(obs: dict, key: jax.Array) -> dict:
-            every = noise.draw(ts.noise, noise_map, key, (n_eval,))[eval_rows(chunk)]
-            return noise.noised(noise_map, obs, jnp.where(evaluating, every, noise.draw(ts.noise, noise_map, key,
-                                                                                        (n_envs,))))
+            seen = branch(evaluating, lambda: noise.draw(ts.noise, noise_map, key, (n_eval,))[eval_rows(chunk)],
+                          lambda: noise.draw(ts.noise, noise_map, key, (n_envs,)))
+            return noise.noised(noise_map, obs, seen)
 
         return observe
 
@@ -271,7 +283,7 @@ def make_train(env, config: Config, env_shards: int = 1):
         starts = acting.draw_starts(key_start, n_envs, train.exploration_starts)
         return draws._replace(key=key), Phase(starts, key_steps, key_updates, key_goals)
 
-    def eval_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array) -> tuple[Draws, Phase]:
+    def eval_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array | int) -> tuple[Draws, Phase]:
         """The epoch's evaluation key (drawn by chunk 0, after the last cycle) and the starts of chunk
         `chunk`'s episodes, from `env.reset` as one rollout of all n_eval (`acting.evaluate`) draws them."""
         key, key_eval = jax.random.split(draws.key)
@@ -280,7 +292,7 @@ def make_train(env, config: Config, env_shards: int = 1):
                                eval_key=jnp.where(first, key_eval, draws.eval_key))
         key_eval = shards.own_key(draws.eval_key)
         starts = acting.Starts(jax.random.split(jax.random.split(key_eval)[0], n_eval)[eval_rows(chunk)])
-        if train.exploration_starts > 0:  # shaped as a cycle's starts, none of them picked
+        if train.exploration_starts > 0 and chunks:  # in the cycles' scan: shaped as theirs, none picked
             starts = starts._replace(eased=starts.reset, pick=jnp.zeros((n_envs,), bool))
         return draws, Phase(starts, key_eval, key_eval, key_eval)
 
@@ -304,32 +316,43 @@ def make_train(env, config: Config, env_shards: int = 1):
 
     learned = jax.jit(learn)  # one trace serves the program and the shapes of its metrics (`skip`)
 
-    def step(ts: TrainState, index: jax.Array) -> tuple[TrainState, tuple]:
-        """Phase `index` of an epoch: cycle `index`, or from `cycles_per_epoch` on, evaluation chunk
-        index - cycles_per_epoch. Both roll out n_envs episodes through the one traced env step, exploring
-        or greedy; a cycle then learns from its episodes, an evaluation chunk keeps their success."""
-        evaluating, chunk = index >= cycles, index - cycles
+    def skip(ts: TrainState, *rollout) -> tuple[TrainState, dict]:
+        """An evaluation chunk's `learn`: nothing learned, zero metrics."""
+        shapes = jax.eval_shape(learned, ts, *rollout)[1]
+        return ts, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+
+    def phase(ts: TrainState, chunk: jax.Array | int, evaluating: bool | jax.Array) -> tuple:
+        """(state, phase, final states, records) of one phase: a cycle's exploring rollout of n_envs
+        episodes, or evaluation chunk `chunk`'s greedy one of eval_width episodes."""
         draws = Draws(ts.key, ts.eval_key, ts.noise)  # what a phase's start changes: not the whole state
-        draws, phase = jax.lax.cond(evaluating, eval_start, cycle_start, draws, ts.buffer, chunk)
+        draws, plan = branch(evaluating, eval_start, cycle_start, draws, ts.buffer, chunk)
         ts = ts.replace(key=draws.key, eval_key=draws.eval_key, noise=draws.noise)
+        explore = not evaluating if isinstance(evaluating, bool) else jnp.logical_not(evaluating)
         final, records = acting.rollout(
-            env, policy(ts, jnp.logical_not(evaluating)), phase.key, states=acting.states_at(env, phase.starts),
+            env, policy(ts, explore), plan.key, states=acting.states_at(env, plan.starts),
             observe=observer(ts, evaluating, chunk),
             record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
         )
-        shapes = jax.eval_shape(learned, ts, phase, final, records)[1]
+        return ts, plan, final, records
 
-        def skip(ts: TrainState, *_) -> tuple[TrainState, dict]:
-            return ts, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-
-        ts, metrics = jax.lax.cond(evaluating, skip, learned, ts, phase, final, records)
+    def step(ts: TrainState, index: jax.Array) -> tuple[TrainState, tuple]:
+        """Phase `index` of the epoch's scan: cycle `index`, or from `cycles_per_epoch` on, evaluation chunk
+        index - cycles_per_epoch. Both roll out n_envs episodes through the one traced env step, exploring
+        or greedy; a cycle then learns from its episodes, an evaluation chunk keeps their success."""
+        evaluating = index >= cycles if chunks else False
+        ts, plan, final, records = phase(ts, index - cycles, evaluating)
+        ts, metrics = branch(evaluating, skip, learned, ts, plan, final, records)
         return ts, (metrics, final.metrics["success"], final.info["goal"])
 
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
-        """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes, in one `lax.scan`."""
-        ts, (metrics, success, goals) = jax.lax.scan(step, ts, jnp.arange(cycles + n_chunks))
-        success = success[cycles:].reshape(-1)[:n_eval]
-        goals = goals[cycles:].reshape(-1, goals.shape[-1])[:n_eval]
+        """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes: in the cycles' scan
+        (`chunks` of n_envs) or after it."""
+        ts, (metrics, success, goals) = jax.lax.scan(step, ts, jnp.arange(cycles + chunks))
+        if chunks:
+            success, goals = success[cycles:].reshape(-1), goals[cycles:].reshape(-1, goals.shape[-1])
+        else:
+            ts, _, final, _ = phase(ts, 0, True)
+            success, goals = final.metrics["success"], final.info["goal"]
         ts = ts.replace(epoch=ts.epoch + 1)
         metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),
                    "env_steps": ts.env_steps}

@@ -92,21 +92,24 @@ def jit_calls(jaxpr: jax.extend.core.Jaxpr, name: str) -> int:
     return count
 
 
-def test_the_epoch_steps_and_resets_the_env_in_one_place():
-    """The cycles' exploring rollouts and the evaluation chunks are one rollout in the program: one
-    call of the env's (jitted, `acting.traced_once`) step and reset, with eval_envs not a multiple of num_envs."""
-    config = Config(RunConfig(agent="proprio_baseline"), dataclasses.replace(TINY, eval_envs=6), NetworkConfig())
+@pytest.mark.parametrize("eval_envs, places", [(8, 1), (6, 2)])
+def test_the_epoch_steps_and_resets_the_env_in_one_place_when_eval_envs_is_a_multiple_of_num_envs(eval_envs, places):
+    """With eval_envs a multiple of num_envs (4) the cycles' exploring rollouts and the evaluation chunks are
+    one rollout in the program: one call of the env's (jitted, `acting.traced_once`) step and reset;
+    otherwise the evaluation is a rollout of its own (a second call of each)."""
+    config = Config(RunConfig(agent="proprio_baseline"), dataclasses.replace(TINY, eval_envs=eval_envs),
+                    NetworkConfig())
     init, epoch = make_train(envs_mjx.make("planar_reach", render=False), config)
     jaxpr = jax.make_jaxpr(epoch)(jax.eval_shape(init, jax.random.PRNGKey(0))).jaxpr
-    assert (jit_calls(jaxpr, "step"), jit_calls(jaxpr, "reset")) == (1, 1)
+    assert (jit_calls(jaxpr, "step"), jit_calls(jaxpr, "reset")) == (places, places)
 
 
 def test_the_epochs_evaluation_is_acting_evaluate_with_its_eval_key():
-    """The epoch evaluates in chunks of num_envs episodes (the last one padded); its episodes, noise draws
+    """The epoch evaluates in chunks of num_envs episodes inside its cycles' scan; its episodes, noise draws
     included, are those of one greedy rollout of eval_envs episodes with the state's `eval_key`, which is
     how `experiments.evaluate` reproduces a run's logged evaluation."""
     train = dataclasses.replace(TINY, num_envs=2, cycles_per_epoch=1, updates_per_cycle=1, buffer_episodes=4,
-                                eval_envs=5, obs_noise=0.5, noise_segments="q")
+                                eval_envs=6, obs_noise=0.5, noise_segments="q")
     config = Config(RunConfig(agent="proprio_baseline"), train, NetworkConfig())
     env = GradedPlanarReach(render=False)
     init, epoch = make_train(env, config)
