@@ -2,10 +2,11 @@
 
 `epoch` is ONE jit-able function: a `lax.scan` over cycles of (vectorised rollout of all
 parallel envs with exploration, buffer insert, normaliser update, n gradient updates,
-target update after every gradient step), then deterministic evaluation rollouts. The scan's
-phases are the cycles and then the evaluation in chunks of the cycles' width, each one
-`acting.rollout` with `acting.make_policy` (exploring switched off by a traced flag), so the
-program steps the env in one place and XLA compiles the physics once. The agent's family (`bidal_jax.agents`)
+target update after every gradient step), then deterministic evaluation rollouts. Where
+`eval_envs` is a multiple of `num_envs` the evaluation is the scan's last phases, chunks of the
+cycles' width, and every phase is one `acting.rollout` with `acting.make_policy` (exploring
+switched off by a traced flag): the program steps the env in one place and XLA compiles the
+physics once. Otherwise it is a rollout of its own after the scan. The agent's family (`bidal_jax.agents`)
 declares the networks, the losses and the order of an update's steps; DDPG + BidAL's are
 `losses.py`'s (paper Eqs. 3-5, 7, 8). HER relabels with the `future` strategy inside `replay.sample`.
 
