@@ -297,30 +297,39 @@ def make_train(env, config: Config, env_shards: int = 1):
             starts = starts._replace(eased=starts.reset, pick=jnp.zeros((n_envs,), bool))
         return draws, Phase(starts, key_eval, key_eval, key_eval)
 
-    def learn(ts: TrainState, phase: Phase, final: Any, records: tuple) -> tuple[TrainState, dict]:
-        """A cycle's learning from its rollout: insert its episodes, update the normalisers, then
-        `updates_per_cycle` gradient steps."""
-        last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
-                                                               jax.random.fold_in(phase.key, 2))
-        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
+    def insert(buffer: replay.ReplayState, episodes: dict, evaluating: bool | jax.Array) -> replay.ReplayState:
+        """`replay.insert` of a cycle's episodes. An evaluation chunk writes back what the slots hold and does
+        not advance, so that the buffer is updated in place in every phase, outside `lax.cond` (whose outputs
+        XLA would copy: hundreds of MB of images)."""
+        if isinstance(evaluating, bool):
+            return buffer if evaluating else replay.insert(buffer, episodes)
+        held = jax.tree.map(lambda b: jax.lax.dynamic_slice_in_dim(b, buffer.position, n_envs), buffer.episodes)
+        kept = jax.tree.map(lambda e, h: jnp.where(evaluating, h, e.astype(h.dtype)), episodes, held)
+        written = replay.insert(buffer, kept)
+        return written.replace(position=jnp.where(evaluating, buffer.position, written.position),
+                               size=jnp.where(evaluating, buffer.size, written.size))
+
+    def learn(ts: TrainState, phase: Phase, final: Any, episodes: dict) -> tuple[TrainState, dict]:
+        """A cycle's learning from its rollout (its episodes already inserted): update the normalisers, then
+        `updates_per_cycle` gradient steps. The state comes back without its buffer, which no update changes."""
         # the goal normaliser sees the goals the critic will see: desired and HER-relabelled
         goals = replay.her_goals(episodes, shards.own_key(phase.key_goals), n_envs * env.episode_length, future_p)
         ts = ts.replace(
-            buffer=replay.insert(ts.buffer, episodes),
             proprio_norm=normalizer.update(ts.proprio_norm, shards.everyone(episodes["proprio"])),
             goal_norm=normalizer.update(ts.goal_norm, shards.everyone(goals)),
             env_steps=ts.env_steps + train.num_envs * env.episode_length,
         )
         ts, metrics = jax.lax.scan(update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
         train_success = shards.average(final.metrics["success"].mean())
-        return ts, {**shards.average(jax.tree.map(jnp.mean, metrics)), "train_success": train_success}
+        return ts.replace(buffer=None), {**shards.average(jax.tree.map(jnp.mean, metrics)),
+                                         "train_success": train_success}
 
     learned = jax.jit(learn)  # one trace serves the program and the shapes of its metrics (`skip`)
 
     def skip(ts: TrainState, *rollout) -> tuple[TrainState, dict]:
         """An evaluation chunk's `learn`: nothing learned, zero metrics."""
         shapes = jax.eval_shape(learned, ts, *rollout)[1]
-        return ts, jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+        return ts.replace(buffer=None), jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
     def phase(ts: TrainState, chunk: jax.Array | int, evaluating: bool | jax.Array) -> tuple:
         """(state, phase, final states, records) of one phase: a cycle's exploring rollout of n_envs
@@ -342,7 +351,12 @@ def make_train(env, config: Config, env_shards: int = 1):
         or greedy; a cycle then learns from its episodes, an evaluation chunk keeps their success."""
         evaluating = index >= cycles if chunks else False
         ts, plan, final, records = phase(ts, index - cycles, evaluating)
-        ts, metrics = branch(evaluating, skip, learned, ts, plan, final, records)
+        last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
+                                                               jax.random.fold_in(plan.key, 2))
+        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
+        buffer = insert(ts.buffer, episodes, evaluating)
+        ts, metrics = branch(evaluating, skip, learned, ts.replace(buffer=buffer), plan, final, episodes)
+        ts = ts.replace(buffer=buffer)
         return ts, (metrics, final.metrics["success"], final.info["goal"])
 
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
