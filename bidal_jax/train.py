@@ -347,8 +347,9 @@ def make_train(env, config: Config, env_shards: int = 1):
 
     def step(ts: TrainState, index: jax.Array) -> tuple[TrainState, tuple]:
         """Phase `index` of the epoch's scan: cycle `index`, or from `cycles_per_epoch` on, evaluation chunk
-        index - cycles_per_epoch. Both roll out n_envs episodes through the one traced env step, exploring
-        or greedy; a cycle then learns from its episodes, an evaluation chunk keeps their success."""
+        index - cycles_per_epoch (where `chunks` puts the evaluation in the scan). Both roll out n_envs episodes
+        through the one traced env step, exploring or greedy; a cycle then learns from its episodes, an
+        evaluation chunk keeps their success."""
         evaluating = index >= cycles if chunks else False
         ts, plan, final, records = phase(ts, index - cycles, evaluating)
         last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
