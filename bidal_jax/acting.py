@@ -68,14 +68,16 @@ def acting_params(state: Any, networks: tuple[str, ...]) -> ActingParams:
     )
 
 
-def make_policy(networks: Any, config: Config, params: ActingParams, explore: bool = False) -> Policy:
+def make_policy(networks: Any, config: Config, params: ActingParams, explore: bool | jax.Array = False) -> Policy:
     """The policy of `params` (the family's `act`; DDPG's μ(ψ(s), η(g)), paper Eq. 7) with the agent's
     `networks`, on batched observations.
 
     Proprio and goals are normalised (clipped to ±`train.clip_obs`) as in training. With
     `explore`, actions get Gaussian noise of std `noise_eps` (then clipped to [-1, 1]) and
     are replaced by uniform random actions with probability `random_eps` (HER's exploration);
-    the policy's input `x` must then be a PRNG key.
+    the policy's input `x` must then be a PRNG key. `explore` may be a traced bool (one program
+    that both explores and evaluates, as a training epoch's one rollout): where it is false the
+    actions are the greedy ones exactly.
     """
     agent, train = config.agent, config.train
 
@@ -84,7 +86,10 @@ def make_policy(networks: Any, config: Config, params: ActingParams, explore: bo
         proprio = normalizer.normalize(params.proprio_norm, obs["proprio"], train.clip_obs)
         goal = normalizer.normalize(params.goal_norm, obs["desired_goal"], train.clip_obs)
         action = agent.family.act(networks, params.params, image, proprio, goal)
-        return exploring(action, x, train.noise_eps, train.random_eps) if explore else action
+        if explore is False:
+            return action
+        explored = exploring(action, x, train.noise_eps, train.random_eps)
+        return explored if explore is True else jnp.where(explore, explored, action)
 
     return act
 
@@ -118,22 +123,44 @@ def open_loop(obs: dict, action: jax.Array) -> jax.Array:
 @functools.lru_cache(maxsize=16)
 def traced_once(env_fn: Callable) -> Callable:
     """`jax.jit(env_fn)`, the same object for each env function (a bound method: `env.step`, `env.reset`), so
-    that every rollout of a program reuses its jaxpr from JAX's trace cache: a training epoch traces the
-    physics once for its exploring and evaluation rollouts, not once for each. Inside a program the jit is
-    inlined; the computation is the same."""
+    that every rollout of a program reuses its jaxpr from JAX's trace cache: a program that steps the env in
+    several places traces the physics once. Inside a program the jit is inlined; the computation is the same."""
     return jax.jit(env_fn)
+
+
+class Starts(NamedTuple):
+    """How `n` episodes begin: the keys of `env.reset` [n], and with exploration starts the keys of
+    `env.exploration_reset` [n] and which episodes begin from it (bool [n])."""
+
+    reset: jax.Array
+    eased: jax.Array | None = None
+    pick: jax.Array | None = None
+
+
+def draw_starts(key: jax.Array, n_envs: int, exploration_starts: float = 0.0) -> Starts:
+    """The starts of `n_envs` episodes, a fraction `exploration_starts` of them (drawn at random) from
+    `env.exploration_reset` (e.g. nicol_lift's cube already held); 0: every one from `env.reset`."""
+    if exploration_starts <= 0:
+        return Starts(jax.random.split(key, n_envs))
+    key_reset, key_eased, key_pick = jax.random.split(key, 3)
+    pick = jax.random.uniform(key_pick, (n_envs,)) < exploration_starts
+    return Starts(jax.random.split(key_reset, n_envs), jax.random.split(key_eased, n_envs), pick)
+
+
+def states_at(env, starts: Starts):
+    """The batched initial states of `starts`."""
+    state = jax.vmap(traced_once(env.reset))(starts.reset)
+    if starts.eased is None:
+        return state
+    eased = jax.vmap(traced_once(env.exploration_reset))(starts.eased)
+    pick = starts.pick
+    return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
 
 
 def start_states(env, key: jax.Array, n_envs: int, exploration_starts: float = 0.0):
     """`n_envs` initial states from `env.reset`, a fraction `exploration_starts` of them (drawn at
-    random) from `env.exploration_reset` instead (e.g. nicol_lift's cube already held)."""
-    if exploration_starts <= 0:
-        return jax.vmap(traced_once(env.reset))(jax.random.split(key, n_envs))
-    key_reset, key_eased, key_pick = jax.random.split(key, 3)
-    state = jax.vmap(traced_once(env.reset))(jax.random.split(key_reset, n_envs))
-    eased = jax.vmap(traced_once(env.exploration_reset))(jax.random.split(key_eased, n_envs))
-    pick = jax.random.uniform(key_pick, (n_envs,)) < exploration_starts
-    return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
+    random) from `env.exploration_reset` instead (`draw_starts`)."""
+    return states_at(env, draw_starts(key, n_envs, exploration_starts))
 
 
 def _no_record(step: Step) -> None:
@@ -186,19 +213,11 @@ def rollout(
     return jax.lax.scan(body, states, (keys, keys if inputs is None else inputs))
 
 
-def evaluate_goals(
-    env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None,
-    observe: Observer | None = None,
-) -> tuple[jax.Array, jax.Array]:
-    """(success, desired goal) of each episode, as `evaluate` runs them: float32 [n_episodes], [n_episodes, G]."""
-    final, _ = rollout(env, policy, key, n_episodes, states=states, observe=observe)
-    return final.metrics["success"], final.info["goal"]
-
-
 def evaluate(
     env, policy: Policy, key: jax.Array, n_episodes: int | None = None, states: Any = None,
     observe: Observer | None = None,
 ) -> jax.Array:
     """Success (paper Eq. 6 at the episode's last step, on the true state) of `policy` in each of
     `n_episodes` episodes from `env.reset`, or from the given batched `states`; float32 [n_episodes]."""
-    return evaluate_goals(env, policy, key, n_episodes, states, observe)[0]
+    final, _ = rollout(env, policy, key, n_episodes, states=states, observe=observe)
+    return final.metrics["success"]

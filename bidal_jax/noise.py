@@ -126,8 +126,18 @@ def refresh(state: NoiseState, clean: jax.Array, n_episodes: jax.Array) -> Noise
 def observe(state: NoiseState, nmap: NoiseMap, obs: dict, key: jax.Array) -> dict:
     """What the agent sees of batched `obs`: the measured features `nmap.indices` plus κ·N(0, σ) noise
     (Eq. 9), spread onto the features derived from them (and the achieved goal) by `nmap`."""
+    return noised(nmap, obs, draw(state, nmap, key, obs["proprio"].shape[:-1]))
+
+
+def draw(state: NoiseState, nmap: NoiseMap, key: jax.Array, batch: tuple[int, ...]) -> jax.Array:
+    """κ·N(0, σ) noise [*batch, F] on the `nmap.indices` features of `batch` observations (Eq. 9)."""
+    return state.kappa * state.sigma * jax.random.normal(key, (*batch, len(nmap.indices)))
+
+
+def noised(nmap: NoiseMap, obs: dict, noise: jax.Array) -> dict:
+    """Batched `obs` with `noise` [..., F] (`draw`) on the measured features, spread onto the features
+    derived from them (and the achieved goal) by `nmap`."""
     proprio = obs["proprio"]
-    noise = state.kappa * state.sigma * jax.random.normal(key, (*proprio.shape[:-1], len(nmap.indices)))
     seen = {**obs, "proprio": proprio + noise @ jnp.asarray(nmap.spread)}
     if nmap.goal_spread is not None:
         seen["achieved_goal"] = obs["achieved_goal"] + noise @ jnp.asarray(nmap.goal_spread)

@@ -2,8 +2,11 @@
 
 `epoch` is ONE jit-able function: a `lax.scan` over cycles of (vectorised rollout of all
 parallel envs with exploration, buffer insert, normaliser update, n gradient updates,
-target update after every gradient step), then deterministic evaluation rollouts. Both
-rollouts are `acting.rollout` with `acting.make_policy`. The agent's family (`bidal_jax.agents`)
+target update after every gradient step), then deterministic evaluation rollouts. Where
+`eval_envs` is a multiple of `num_envs` the evaluation is the scan's last phases, chunks of the
+cycles' width, and every phase is one `acting.rollout` with `acting.make_policy` (exploring
+switched off by a traced flag): the program steps the env in one place and XLA compiles the
+physics once. Otherwise it is a rollout of its own after the scan. The agent's family (`bidal_jax.agents`)
 declares the networks, the losses and the order of an update's steps; DDPG + BidAL's are
 `losses.py`'s (paper Eqs. 3-5, 7, 8). HER relabels with the `future` strategy inside `replay.sample`.
 
@@ -17,7 +20,7 @@ buffer, draws its share of each batch and averages its gradients with the other 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,6 +69,32 @@ class Shards:
     def average(self, tree: Any) -> Any:
         """The mean over shards of a pytree (gradients, metrics)."""
         return tree if self.count == 1 else jax.lax.pmean(tree, ENV_AXIS)
+
+
+class Draws(NamedTuple):
+    """The parts of a `TrainState` that a phase's start draws anew: its key, its evaluation key and the
+    observation noise's state."""
+
+    key: jax.Array
+    eval_key: jax.Array
+    noise: noise.NoiseState | None
+
+
+class Phase(NamedTuple):
+    """What a phase of an epoch (a cycle, or a chunk of the evaluation) rolls out, and with which keys: its
+    episodes' starts, the rollout's key, and a cycle's keys of its updates and HER goals."""
+
+    starts: acting.Starts
+    key: jax.Array
+    key_updates: jax.Array
+    key_goals: jax.Array
+
+
+def branch(pred: bool | jax.Array, on_true: Callable, on_false: Callable, *operands) -> Any:
+    """`lax.cond` on a traced `pred`; on a Python bool, the one branch it picks (the other is not traced)."""
+    if isinstance(pred, bool):
+        return (on_true if pred else on_false)(*operands)
+    return jax.lax.cond(pred, on_true, on_false, *operands)
 
 
 def optimizer(lr: float, grad_clip: float) -> optax.GradientTransformation:
@@ -199,26 +228,32 @@ def make_train(env, config: Config, env_shards: int = 1):
     learner = make_learner(env, config, shards)
     networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
+    # the evaluation runs in chunks of the cycles' width inside the cycles' scan, through the same traced env
+    # step, where they roll out exactly n_eval episodes; otherwise (e.g. 128 of 2,048 envs) as a rollout of its
+    # own, since padding it to the cycles' width would cost physics every epoch
+    cycles, chunks = train.cycles_per_epoch, n_eval // n_envs if n_eval % n_envs == 0 else 0
+    eval_width = n_envs if chunks else n_eval
 
-    def policy(ts: TrainState, explore: bool) -> acting.Policy:
+    def policy(ts: TrainState, explore: bool | jax.Array) -> acting.Policy:
         return acting.make_policy(networks, config, acting.acting_params(ts, agent.family.acting_networks), explore)
 
-    def observer(ts: TrainState) -> acting.Observer | None:
-        """What the agent sees of an observation: with noise on the `noisy` features, if any."""
-        return (lambda obs, key: noise.observe(ts.noise, noise_map, obs, key)) if len(noisy) else None
+    def eval_rows(chunk: jax.Array | int) -> jax.Array:
+        """The evaluation episodes of chunk `chunk` [eval_width]: chunk·eval_width onwards."""
+        return chunk * eval_width + jnp.arange(eval_width)
 
-    def collect(ts: TrainState, key: jax.Array) -> tuple[dict, jax.Array]:
-        """One exploring episode in each of the shard's envs, as replay episodes; train success."""
-        key_start, key_steps = jax.random.split(key)
-        states = acting.start_states(env, key_start, n_envs, train.exploration_starts)
-        observe = observer(ts)
-        final, records = acting.rollout(
-            env, policy(ts, explore=True), key_steps, states=states, observe=observe,
-            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
-        )
-        last = final.obs if observe is None else observe(final.obs, jax.random.fold_in(key_steps, 2))
-        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
-        return episodes, shards.average(final.metrics["success"].mean())
+    def observer(ts: TrainState, evaluating: bool | jax.Array, chunk: jax.Array | int) -> acting.Observer | None:
+        """What the agent sees of an observation: with noise on the `noisy` features, if any. A cycle draws
+        the noise of its n_envs episodes; an evaluation chunk takes its rows of the draw for all n_eval, as
+        one rollout of them (`acting.evaluate`) draws it."""
+        if not len(noisy):
+            return None
+
+        def observe(obs: dict, key: jax.Array) -> dict:
+            seen = branch(evaluating, lambda: noise.draw(ts.noise, noise_map, key, (n_eval,))[eval_rows(chunk)],
+                          lambda: noise.draw(ts.noise, noise_map, key, (n_envs,)))
+            return noise.noised(noise_map, obs, seen)
+
+        return observe
 
     def init(key: jax.Array) -> TrainState:
         key_params, key_state = jax.random.split(key)
@@ -239,32 +274,103 @@ def make_train(env, config: Config, env_shards: int = 1):
             epoch=jnp.zeros((), jnp.int32),
         )
 
-    def cycle(ts: TrainState, _):
-        """Collect, insert, update the normalisers, then `updates_per_cycle` gradient steps."""
-        if len(noisy):  # σ from the clean history collected so far, before every rollout
-            ts = ts.replace(noise=noise.refresh(ts.noise, ts.buffer.episodes["clean"], ts.buffer.size))
-        key, key_rollout, key_updates, key_goals = jax.random.split(ts.key, 4)
-        episodes, train_success = collect(ts, shards.own_key(key_rollout))
+    def cycle_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array) -> tuple[Draws, Phase]:
+        """A cycle's keys and the starts of its n_envs exploring episodes (with `exploration_starts`); σ of
+        the observation noise from the clean history collected so far, before every rollout."""
+        if len(noisy):
+            draws = draws._replace(noise=noise.refresh(draws.noise, buffer.episodes["clean"], buffer.size))
+        key, key_rollout, key_updates, key_goals = jax.random.split(draws.key, 4)
+        key_start, key_steps = jax.random.split(shards.own_key(key_rollout))
+        starts = acting.draw_starts(key_start, n_envs, train.exploration_starts)
+        return draws._replace(key=key), Phase(starts, key_steps, key_updates, key_goals)
+
+    def eval_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array | int) -> tuple[Draws, Phase]:
+        """The epoch's evaluation key (drawn by chunk 0, after the last cycle) and the starts of chunk
+        `chunk`'s episodes, from `env.reset` as one rollout of all n_eval (`acting.evaluate`) draws them."""
+        key, key_eval = jax.random.split(draws.key)
+        first = chunk == 0
+        draws = draws._replace(key=jnp.where(first, key, draws.key),
+                               eval_key=jnp.where(first, key_eval, draws.eval_key))
+        key_eval = shards.own_key(draws.eval_key)
+        starts = acting.Starts(jax.random.split(jax.random.split(key_eval)[0], n_eval)[eval_rows(chunk)])
+        if train.exploration_starts > 0 and chunks:  # in the cycles' scan: shaped as theirs, none picked
+            starts = starts._replace(eased=starts.reset, pick=jnp.zeros((n_envs,), bool))
+        return draws, Phase(starts, key_eval, key_eval, key_eval)
+
+    def insert(buffer: replay.ReplayState, episodes: dict, evaluating: bool | jax.Array) -> replay.ReplayState:
+        """`replay.insert` of a cycle's episodes. An evaluation chunk writes back what the slots hold and does
+        not advance, so that the buffer is updated in place in every phase, outside `lax.cond` (whose outputs
+        XLA would copy: hundreds of MB of images)."""
+        if isinstance(evaluating, bool):
+            return buffer if evaluating else replay.insert(buffer, episodes)
+        held = jax.tree.map(lambda b: jax.lax.dynamic_slice_in_dim(b, buffer.position, n_envs), buffer.episodes)
+        kept = jax.tree.map(lambda e, h: jnp.where(evaluating, h, e.astype(h.dtype)), episodes, held)
+        written = replay.insert(buffer, kept)
+        return written.replace(position=jnp.where(evaluating, buffer.position, written.position),
+                               size=jnp.where(evaluating, buffer.size, written.size))
+
+    def learn(ts: TrainState, phase: Phase, final: Any, episodes: dict) -> tuple[TrainState, dict]:
+        """A cycle's learning from its rollout (its episodes already inserted): update the normalisers, then
+        `updates_per_cycle` gradient steps. The state comes back without its buffer, which no update changes."""
         # the goal normaliser sees the goals the critic will see: desired and HER-relabelled
-        goals = replay.her_goals(episodes, shards.own_key(key_goals), n_envs * env.episode_length, future_p)
+        goals = replay.her_goals(episodes, shards.own_key(phase.key_goals), n_envs * env.episode_length, future_p)
         ts = ts.replace(
-            key=key,
-            buffer=replay.insert(ts.buffer, episodes),
             proprio_norm=normalizer.update(ts.proprio_norm, shards.everyone(episodes["proprio"])),
             goal_norm=normalizer.update(ts.goal_norm, shards.everyone(goals)),
             env_steps=ts.env_steps + train.num_envs * env.episode_length,
         )
-        ts, metrics = jax.lax.scan(update, ts, jax.random.split(key_updates, train.updates_per_cycle))
-        return ts, {**shards.average(jax.tree.map(jnp.mean, metrics)), "train_success": train_success}
+        ts, metrics = jax.lax.scan(update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
+        train_success = shards.average(final.metrics["success"].mean())
+        return ts.replace(buffer=None), {**shards.average(jax.tree.map(jnp.mean, metrics)),
+                                         "train_success": train_success}
+
+    learned = jax.jit(learn)  # one trace serves the program and the shapes of its metrics (`skip`)
+
+    def skip(ts: TrainState, *rollout) -> tuple[TrainState, dict]:
+        """An evaluation chunk's `learn`: nothing learned, zero metrics."""
+        shapes = jax.eval_shape(learned, ts, *rollout)[1]
+        return ts.replace(buffer=None), jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+
+    def phase(ts: TrainState, chunk: jax.Array | int, evaluating: bool | jax.Array) -> tuple:
+        """(state, phase, final states, records) of one phase: a cycle's exploring rollout of n_envs
+        episodes, or evaluation chunk `chunk`'s greedy one of eval_width episodes."""
+        draws = Draws(ts.key, ts.eval_key, ts.noise)  # what a phase's start changes: not the whole state
+        draws, plan = branch(evaluating, eval_start, cycle_start, draws, ts.buffer, chunk)
+        ts = ts.replace(key=draws.key, eval_key=draws.eval_key, noise=draws.noise)
+        explore = not evaluating if isinstance(evaluating, bool) else jnp.logical_not(evaluating)
+        final, records = acting.rollout(
+            env, policy(ts, explore), plan.key, states=acting.states_at(env, plan.starts),
+            observe=observer(ts, evaluating, chunk),
+            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
+        )
+        return ts, plan, final, records
+
+    def step(ts: TrainState, index: jax.Array) -> tuple[TrainState, tuple]:
+        """Phase `index` of the epoch's scan: cycle `index`, or from `cycles_per_epoch` on, evaluation chunk
+        index - cycles_per_epoch (where `chunks` puts the evaluation in the scan). Both roll out n_envs episodes
+        through the one traced env step, exploring or greedy; a cycle then learns from its episodes, an
+        evaluation chunk keeps their success."""
+        evaluating = index >= cycles if chunks else False
+        ts, plan, final, records = phase(ts, index - cycles, evaluating)
+        last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
+                                                               jax.random.fold_in(plan.key, 2))
+        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
+        buffer = insert(ts.buffer, episodes, evaluating)
+        ts, metrics = branch(evaluating, skip, learned, ts.replace(buffer=buffer), plan, final, episodes)
+        ts = ts.replace(buffer=buffer)
+        return ts, (metrics, final.metrics["success"], final.info["goal"])
 
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
-        """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes."""
-        ts, metrics = jax.lax.scan(cycle, ts, None, length=train.cycles_per_epoch)
-        key, key_eval = jax.random.split(ts.key)
-        greedy = policy(ts, explore=False)
-        success, goals = acting.evaluate_goals(env, greedy, shards.own_key(key_eval), n_eval, observe=observer(ts))
-        ts = ts.replace(key=key, eval_key=key_eval, epoch=ts.epoch + 1)
-        metrics = {**jax.tree.map(jnp.mean, metrics), "eval_success": shards.average(success.mean()),
+        """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes: in the cycles' scan
+        (`chunks` of n_envs) or after it."""
+        ts, (metrics, success, goals) = jax.lax.scan(step, ts, jnp.arange(cycles + chunks))
+        if chunks:
+            success, goals = success[cycles:].reshape(-1), goals[cycles:].reshape(-1, goals.shape[-1])
+        else:
+            ts, _, final, _ = phase(ts, 0, True)
+            success, goals = final.metrics["success"], final.info["goal"]
+        ts = ts.replace(epoch=ts.epoch + 1)
+        metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),
                    "env_steps": ts.env_steps}
         for name, mask in env.goal_subsets(goals).items():  # e.g. nicol_lift's air goals: success among them
             hits, count = shards.average((success * mask).sum()), shards.average(mask.sum().astype(jnp.float32))

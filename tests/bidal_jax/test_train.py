@@ -1,17 +1,21 @@
-"""Training: the epoch compiles once, exploration starts, and a short proprio run learns planar_reach."""
+"""Training: the epoch compiles once, exploration starts, one traced env step serves the cycles and the
+evaluation (which `acting.evaluate` reproduces), and a short proprio run learns planar_reach."""
 
 import dataclasses
+import functools
 
 import chex
 import jax
+import jax.extend.core
 import numpy as np
 import pytest
 
 import envs_mjx
+from bidal_jax import acting, noise
 from bidal_jax.agents import ddpg
 from bidal_jax.config import Config, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.run.devices import make_seeded
-from bidal_jax.train import make_train
+from bidal_jax.train import Shards, make_learner, make_train
 from envs_mjx.planar_reach import PlanarReach
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
@@ -61,6 +65,68 @@ def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(age
     # seeds differ
     leaves = jax.tree.leaves(state.params["actor"])
     assert not np.array_equal(np.asarray(leaves[0][0]), np.asarray(leaves[0][1]))
+
+
+class GradedPlanarReach(PlanarReach):
+    """planar_reach whose success metric is the final distance to the goal: an evaluation result that
+    differs wherever one step of one episode does."""
+
+    def step(self, state, action):
+        state = super().step(state, action)
+        return state.replace(metrics={**state.metrics, "success": state.metrics["distance"]})
+
+
+def jit_calls(jaxpr: jax.extend.core.Jaxpr, name: str) -> int:
+    """How many times `jaxpr` and the jaxprs inside it call a jitted function called `name`."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in ("jit", "pjit") and eqn.params.get("name") == name:
+            count += 1
+            continue
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else [param]:
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    count += jit_calls(sub.jaxpr, name)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    count += jit_calls(sub, name)
+    return count
+
+
+@pytest.mark.parametrize("eval_envs, places", [(8, 1), (6, 2)])
+def test_the_epoch_steps_and_resets_the_env_in_one_place_when_eval_envs_is_a_multiple_of_num_envs(eval_envs, places):
+    """With eval_envs a multiple of num_envs (4) the cycles' exploring rollouts and the evaluation chunks are
+    one rollout in the program: one call of the env's (jitted, `acting.traced_once`) step and reset;
+    otherwise the evaluation is a rollout of its own (a second call of each)."""
+    config = Config(RunConfig(agent="proprio_baseline"), dataclasses.replace(TINY, eval_envs=eval_envs),
+                    NetworkConfig())
+    init, epoch = make_train(envs_mjx.make("planar_reach", render=False), config)
+    jaxpr = jax.make_jaxpr(epoch)(jax.eval_shape(init, jax.random.PRNGKey(0))).jaxpr
+    assert (jit_calls(jaxpr, "step"), jit_calls(jaxpr, "reset")) == (places, places)
+
+
+def test_the_epochs_evaluation_is_acting_evaluate_with_its_eval_key():
+    """The epoch evaluates in chunks of num_envs episodes inside its cycles' scan; its episodes, noise draws
+    included, are those of one greedy rollout of eval_envs episodes with the state's `eval_key`, which is
+    how `experiments.evaluate` reproduces a run's logged evaluation."""
+    train = dataclasses.replace(TINY, num_envs=2, cycles_per_epoch=1, updates_per_cycle=1, buffer_episodes=4,
+                                eval_envs=6, obs_noise=0.5, noise_segments="q")
+    config = Config(RunConfig(agent="proprio_baseline"), train, NetworkConfig())
+    env = GradedPlanarReach(render=False)
+    init, epoch = make_train(env, config)
+    state, metrics = jax.jit(epoch)(init(jax.random.PRNGKey(0)))
+    networks = make_learner(env, config, Shards(1)).networks
+    noise_map = noise.noise_map(env.observation_spec, ("q",), train.noise_variant)
+
+    @jax.jit
+    def mean_distance(state):
+        params = acting.acting_params(state, config.agent.family.acting_networks)
+        policy = acting.make_policy(networks, config, params)
+        observe = functools.partial(noise.observe, state.noise, noise_map)
+        return acting.evaluate(env, policy, state.eval_key, train.eval_envs, observe=observe).mean()
+
+    # a 0/1 success's mean is exact in any order; these distances' float sums may differ in the last bit
+    np.testing.assert_allclose(float(metrics["eval_success"]), float(mean_distance(state)), rtol=1e-6, atol=0)
+    assert float(metrics["eval_success"]) > 0.0
 
 
 @pytest.mark.slow
