@@ -23,30 +23,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import statistics
 import time
 import traceback
 
 import jax
 import numpy as np
 
-from experiments.bench.programs import make_env, seeded_program
+from experiments.bench.programs import make_env, seeded_program, timed
 from experiments.probes.grasping import grasp_policy
 
 BACKENDS = ("jax", "warp")
-
-
-def timed(fn, repeats: int) -> dict[str, float]:
-    """`fn()` (blocking) once cold, then the median of `repeats` runs."""
-    start = time.perf_counter()
-    fn()
-    first = time.perf_counter() - start
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return {"first_call_seconds": first, "warm_seconds": statistics.median(times)}
 
 
 def random_actions(key: jax.Array, steps: int, n: int, size: int) -> jax.Array:

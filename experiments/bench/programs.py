@@ -4,13 +4,15 @@
 physics), the preset config (`bidal_jax.config.resolve`, with any `TrainConfig` overrides), the
 device layout (`bidal_jax.run.devices.device_layout`) and the seeds' one compiled program
 (`make_seeded`), as `python -m experiments.run` would. `parse_variant` reads the overrides of a benchmark's
-`--variant` (`a=1,net.hidden_size=256,opt.iterations=5`).
+`--variant` (`a=1,net.hidden_size=256,opt.iterations=5`); `timed` times a blocking call cold and warm.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import re
+import statistics
+import time
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -94,3 +96,16 @@ def seeded_program(
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return SeededProgram(init, epoch, config.train, env, devices, shards)
+
+
+def timed(fn, repeats: int) -> dict[str, float]:
+    """`fn()` (blocking) once cold, then the median of `repeats` runs."""
+    start = time.perf_counter()
+    fn()
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return {"first_call_seconds": first, "warm_seconds": statistics.median(times)}

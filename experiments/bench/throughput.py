@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import statistics
 import time
 
 import jax
@@ -28,18 +27,7 @@ from bidal_jax.config import ConfigError, TrainConfig, resolve
 from bidal_jax.run import validate
 from bidal_jax.run.devices import make_seeded
 from bidal_jax.train import make_train
-from experiments.bench.programs import seeded_program
-
-
-def _timed(fn, repeats: int) -> float:
-    """Median seconds of `fn()` (which blocks) over `repeats` runs, after one warm-up."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+from experiments.bench.programs import seeded_program, timed
 
 
 def env_steps_per_second(name: str, num_envs: int, render: bool, steps: int, repeats: int) -> float:
@@ -52,7 +40,7 @@ def env_steps_per_second(name: str, num_envs: int, render: bool, steps: int, rep
         return state.obs["proprio"].sum() + state.obs["image"].sum()
 
     key = jax.random.PRNGKey(0)
-    seconds = _timed(lambda: run(key).block_until_ready(), repeats)
+    seconds = timed(lambda: run(key).block_until_ready(), repeats)["warm_seconds"]
     return num_envs * steps / seconds
 
 
@@ -61,7 +49,7 @@ def camera_frames_per_second(name: str, num_envs: int, repeats: int) -> float:
     env = envs_mjx.make(name, render=False)
     data = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), num_envs)).data
     render = jax.jit(jax.vmap(lambda d: env.camera.render(env.mjx_model, d)))
-    seconds = _timed(lambda: render(data).block_until_ready(), repeats)
+    seconds = timed(lambda: render(data).block_until_ready(), repeats)["warm_seconds"]
     return num_envs / seconds
 
 
@@ -82,7 +70,7 @@ def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int
         holder["state"], metrics = epoch(holder["state"])
         jax.block_until_ready(metrics)
 
-    seconds = _timed(one_epoch, repeats)
+    seconds = timed(one_epoch, repeats)["warm_seconds"]
     return config.cycles_per_epoch * num_envs * env.episode_length / seconds
 
 
@@ -103,7 +91,7 @@ def sharded_training(
 
     one_epoch()  # compiles
     compile_seconds = time.perf_counter() - start
-    seconds = _timed(one_epoch, repeats)
+    seconds = timed(one_epoch, repeats)["warm_seconds"]
     steps = seeds * config.cycles_per_epoch * config.num_envs * env.episode_length
     return {
         "devices": len(devices),
@@ -135,7 +123,7 @@ def native_steps_per_second(name: str, num_envs: int, steps: int, repeats: int, 
     def run():
         rollout.rollout(model, datas, initial, control, nstep=nstep, persistent_pool=True)
 
-    seconds = _timed(run, repeats)
+    seconds = timed(run, repeats)["warm_seconds"]
     return num_envs * steps / seconds
 
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import time
 
 import jax
@@ -28,7 +27,7 @@ from bidal_jax import replay
 from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
 from bidal_jax.train import Shards, make_learner, make_train
-from experiments.bench.programs import parse_variant, program_config
+from experiments.bench.programs import parse_variant, program_config, timed
 from experiments.bench.tracing import print_summary, traced
 
 
@@ -69,17 +68,18 @@ def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, varia
     """Compile and time one variant (`update_program`): a row of the table, with the profile's summary rows."""
     compiled, ts, keys, compile_s = update_program(name, agent, seeds, updates, variant)
     flops, bytes_accessed = per_update_cost(compiled)
-    times = []
-    for _ in range(repeats + 1):  # the first call is a warm-up
-        start = time.perf_counter()
-        ts, metrics = compiled(ts, keys)
-        jax.block_until_ready(metrics)
-        times.append(time.perf_counter() - start)
+    holder = {"state": ts}  # each call donates the state it is given and returns the next
+
+    def call():
+        holder["state"], metrics = compiled(holder["state"], keys)
+        return jax.block_until_ready(metrics)
+
+    seconds = timed(call, repeats)["warm_seconds"]
     row = {"variant": variant, "compile_s": compile_s, "gflop": flops / 1e9, "gb": bytes_accessed / 1e9,
-           "ms": 1e3 * statistics.median(times[1:]) / updates, "trace": []}
+           "ms": 1e3 * seconds / updates, "trace": []}
     if profile:
         out = os.path.join(profile, variant.replace("/", "_").replace(",", "_"))
-        _, row["trace"] = traced(lambda: compiled(ts, keys)[1], out)
+        _, row["trace"] = traced(call, out)
     return row
 
 
