@@ -128,9 +128,11 @@ def start_run(
     `overwrite`), then train it: (its config, its last metrics row). `env` defaults to one made for
     the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for;
     `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
-    (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile.
+    (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile, with one
+    source location per operation (`loop.short_source_locations`).
     Raises what `FAILURES` names."""
     loop.enable_compilation_cache()  # before anything compiles: JAX reads the setting at its first compile
+    loop.short_source_locations()  # before anything is lowered
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
                            overwrite=overwrite, fresh_buffer=fresh_buffer, env=env) as prepared:
         config, env = prepared.config, prepared.env

@@ -15,6 +15,7 @@ Errors are exceptions whose message is one line: `CheckpointError` (bad input, n
 
 from __future__ import annotations
 
+import concurrent.futures
 import json
 import os
 import sys
@@ -107,18 +108,31 @@ def build(
         state, step = _restore(run.run_dir, programs, fresh_buffer=fresh_buffer)
         if fresh_buffer:
             log(f"resuming epoch {step} with an empty replay buffer (--fresh-buffer: the checkpoint's is not restored)")
+        compiled = _compile(programs, config, env, state, log)
     else:
-        state, step = programs.init(programs.keys()), 0
+        (state, compiled), step = _initial_state_and_epoch(programs, config, env, log), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
             state = jax.device_put(initialize(state), programs.sharding)
-    compiled = _compile(programs, config, env, state, log)
     log(f"compiled in {time.time() - start:.1f} s")
     return compiled, state, step, programs.shards
 
 
+def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Callable) -> tuple[Any, Callable]:
+    """(a new run's initial state, the compiled epoch). The state's program (the seeds' keys and `init`) compiles
+    and runs in a second thread while this one traces the epoch and XLA compiles it for the state's shapes and
+    shardings (`abstract_state`), which is all compiling needs: a start waits for the longer of the two, not their
+    sum (the main command on a 2-core CPU: about 3 s of init beside some 30 s of the epoch's trace and compile).
+    The programs are the same, so is what they compute."""
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
+        initial = pool.submit(lambda: programs.init(programs.keys()))
+        compiled = _compile(programs, config, env, programs.abstract_state(), log)
+        return initial.result(), compiled
+
+
 def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:
-    """The compiled epoch: through `exported` where it applies (one device, one env shard, one process, a
-    persistent compilation cache; a line says when the traced program was loaded), else traced and compiled."""
+    """The compiled epoch for `state` (arrays, or their shapes, dtypes and shardings): through `exported` where it
+    applies (one device, one env shard, one process, a persistent compilation cache; a line says when the traced
+    program was loaded), else traced and compiled."""
     where = exported.folder()
     if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1:
         path = os.path.join(where, f"epoch-{exported.program_key(config, env.physics_id, programs.devices)}.jax")
@@ -277,3 +291,13 @@ def enable_compilation_cache() -> None:
              or os.path.join(os.path.expanduser("~"), ".cache", "bidal_jax", "xla"))
     jax.config.update("jax_compilation_cache_dir", cache)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def short_source_locations() -> None:
+    """Programs lowered with one source location per operation (its own line) instead of JAX's default, the whole
+    Python stack (`jax_include_full_tracebacks_in_locations`); a user's $JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS
+    wins. Only the programs' metadata shrinks (what they compute is the same): the main command's compiled epoch
+    is 4.8 MB of HLO text instead of 6.5 MB, and XLA:CPU compiles it about 1.3 s sooner. Call it before anything
+    is lowered."""
+    if "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ:
+        jax.config.update("jax_include_full_tracebacks_in_locations", False)

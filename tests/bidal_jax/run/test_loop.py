@@ -1,6 +1,7 @@
 """Resuming: a stopped and resumed run equals one that never stopped, bit for bit; SIGKILL at
 any moment (mid-save included) leaves a checkpoint to resume from; SIGINT and SIGTERM save
-one and exit with 130 and 143."""
+one and exit with 130 and 143. A new run's state and epoch, built side by side (`loop.build`), are the
+programs' own, bit for bit; the settings a command compiles with."""
 
 import csv
 import json
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 
 import envs_mjx
+from bidal_jax.config import resolve
 from bidal_jax.run import checkpoint, loop
 from experiments import run
 from tests.helpers import restored_state
@@ -189,3 +191,35 @@ def test_the_cache_folder_is_ours_else_jaxs_else_the_default(monkeypatch, ours, 
         jax.config.update("jax_compilation_cache_dir", kept[0])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", kept[1])
     assert folder == os.path.expanduser(expected)
+
+
+def test_a_new_runs_state_and_epoch_built_side_by_side_are_the_programs_own(tmp_path):
+    """`build` compiles the epoch for the state's shapes while the state is computed in another thread: the state
+    and one epoch of it are bitwise those of the programs called one after the other."""
+    given = {"env": "planar_reach", "agent": "proprio_baseline", "seeds": 2, "num_envs": 4, "cycles_per_epoch": 2,
+             "updates_per_cycle": 2, "batch_size": 8, "buffer_episodes": 8, "eval_envs": 4,
+             "run_dir": str(tmp_path / "run")}
+    env, config = envs_mjx.make("planar_reach", render=False), resolve(given)
+    programs = loop.make_programs(env, config)
+    expected = programs.epoch(programs.init(programs.keys()))
+    epoch, state, step, _ = loop.build(env, config, resume=False, log=lambda message: None, built=programs)
+    assert step == 0
+    for a, b in zip(jax.tree.leaves(epoch(state)), jax.tree.leaves(expected)):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("given, expected", [(None, False), ("1", True), ("0", False)])
+def test_source_locations_are_short_unless_the_user_asks_for_tracebacks(monkeypatch, given, expected):
+    name = "jax_include_full_tracebacks_in_locations"
+    if given is None:
+        monkeypatch.delenv(name.upper(), raising=False)
+    else:
+        monkeypatch.setenv(name.upper(), given)
+    kept = getattr(jax.config, name)
+    try:
+        jax.config.update(name, given != "0")  # what JAX read from the variable at import
+        loop.short_source_locations()
+        setting = getattr(jax.config, name)
+    finally:
+        jax.config.update(name, kept)
+    assert setting is expected
