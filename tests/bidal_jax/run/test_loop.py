@@ -19,9 +19,8 @@ import envs_mjx
 from bidal_jax.config import resolve
 from bidal_jax.run import checkpoint, loop
 from experiments import run
-from tests.helpers import restored_state
+from tests.helpers import REPO, restored_state
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TINY = [
     "--env", "planar_reach", "--agent", "proprio_baseline", "--num-envs", "4", "--cycles-per-epoch", "2",
     "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--quiet",
