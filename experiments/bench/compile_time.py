@@ -4,8 +4,9 @@ passes and, on a GPU, LLVM/PTX code generation), for the main command's program 
     python -m experiments.bench.compile_time --out compile.json
     TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1 python -m experiments.bench.compile_time
 
-XLA's own phase timers (HLO passes, LLVM IR, PTX to SASS) print to stderr with the second form. JAX's
-persistent compilation cache is not used here: every figure is a cold XLA compile in this process.
+XLA's own phase timers (HLO passes, LLVM IR, PTX to SASS) print to stderr with the second form (on a CPU:
+`TF_CPP_VMODULE=cpu_compiler=1`). JAX's persistent compilation cache is not used here: every figure is a cold XLA
+compile in this process, of the programs as a run lowers them (`loop.short_source_locations`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import time
 
 import jax
 
+from bidal_jax.run import loop
 from experiments.bench.programs import seeded_program
 
 PROGRAMS = (("ur5_reach", "multimodal_bidal", 1), ("nicol_slide", "multimodal_bidal", 5))
@@ -48,6 +50,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--backend", default="jax", choices=["jax", "warp"])
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
+    loop.short_source_locations()
     results = []
     for name, agent, seeds in PROGRAMS:
         row = {"env": name, "agent": agent, "seeds": seeds, "backend": args.backend, "device": str(jax.devices()[0]),
