@@ -12,10 +12,10 @@ fraction of seeds that lift the claims compare with an exact test (`protocol.SEE
 run's).
 
 Budget: one epoch count per task for every agent (`EPOCHS`, overridden for all tasks by
-`--epochs`): planar_reach 40, ur5_reach 30, nicol_slide 100, nicol_lift 100. These are the env
-presets of bidal_jax/config.py except two: ur5_reach gets 30 rather than its preset's 15 (too
-few for the visual agents), and planar_reach's image agents get the task's 40 rather than their
-preset's 20, so that every curve of a panel covers the same env steps. The other settings are the env
+`--epochs`): planar_reach 100, ur5_reach 150, nicol_slide 100, nicol_lift 100. These are the env
+presets of bidal_jax/config.py except on the reaching tasks, whose presets (planar_reach 40, 20 for its image
+agents; ur5_reach 15) are sized for a run on a CPU: the grid runs them until the visual agents' curves level
+off, the same for every agent so that every curve of a panel covers the same env steps. The other settings are the env
 presets' (nicol_slide: 2,560 envs × 1 cycle, nicol_lift: 2,048 × 2, ...); learner and network
 options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to every run.
 

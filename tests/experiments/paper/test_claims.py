@@ -145,8 +145,8 @@ def test_noise_claims_reversed_when_a_baseline_is_the_steady_one_and_not_measure
 def test_learning_claims_not_reproduced_when_the_visual_baseline_learns_a_task(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
     shutil.rmtree(tmp_path / "planar_reach" / "visual_baseline")
-    fake_run(str(tmp_path / "planar_reach" / "visual_baseline"), "planar_reach", rows([0.66] * 5, 40), None,
-             "visual_baseline")
+    fake_run(str(tmp_path / "planar_reach" / "visual_baseline"), "planar_reach",
+             rows([0.66] * 5, protocol.EPOCHS["planar_reach"]), None, "visual_baseline")
     learn, visual, *_ = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
     assert learn.verdict == "reproduced" and visual.verdict == "not reproduced"
     assert visual.ours.startswith("highest: visual_baseline on planar_reach 0.660")

@@ -47,7 +47,7 @@ def test_the_grid_is_the_papers_tasks_and_agents():
 
 
 @pytest.mark.parametrize("argv, expected", [
-    ([], {"planar_reach": 40, "ur5_reach": 30, "nicol_slide": 100, "nicol_lift": 100}),
+    ([], {"planar_reach": 100, "ur5_reach": 150, "nicol_slide": 100, "nicol_lift": 100}),
     (["--epochs", "7"], dict.fromkeys(TASKS, 7)),
 ])
 def test_every_agent_of_a_task_gets_the_same_epochs(argv, expected):
@@ -79,11 +79,11 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
         f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 7,328 s"  # 147.7 s + 100 × 35.9 s × 10 / 5
     ) in lines
     assert (
-        f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 30 epochs × 8,000 = 240,000 env steps per "
-        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 78 s"
+        f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 150 epochs × 8,000 = 1,200,000 env steps per "
+        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 150 s"
     ) in lines
-    # (96 + 4 × 468) + (78 + 4 × 261) + (1,198 + 4 × 1,484) + (2,628 + 4 × 7,328): nicol_lift's 10 seeds
-    assert "estimated time: 42,164 s (11.7 h) on one GPU running the runs one after another" in printed
+    # (150 + 4 × 1,080) + (150 + 4 × 1,065) + (1,198 + 4 × 1,484) + (2,628 + 4 × 7,328): nicol_lift's 10 seeds
+    assert "estimated time: 47,954 s (13.3 h) on one GPU running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
