@@ -252,7 +252,7 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "nicol_slide": gpu_preset(2560, 1, 1600),
     # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps), since
     # with 1,600 proprio_baseline (5 seeds) reached what sliding alone can score (0.125) only by epoch 53 instead of
-    # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting: what was tried")
+    # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting")
     **{name: gpu_preset(2048, 2, 3200) for name in ("nicol_lift", "nicol_lift_reduced")},
 }
 # Per-agent overrides of the env presets, for agents that learn from images.

@@ -1,5 +1,5 @@
 """How often the trainer's exploration lifts the NICOL cube, before any learning: the raw material HER
-has for learning to lift (docs/results.md, "Lifting: what was tried").
+has for learning to lift (docs/results.md, "Lifting").
 
 The mean action is `zero` (an untrained policy) or `hover` (the hand driven to `GRASP_HEIGHT` above the
 cube, as a policy that has learned to slide keeps it near the cube; fingers and thumb at 0); the trainer's
