@@ -95,6 +95,22 @@ def seed_sharding(devices: Sequence[jax.Device], shards: int = 1) -> Any:
     return jax.tree.map(lambda spec: NamedSharding(mesh, spec), _state_specs(), is_leaf=lambda x: isinstance(x, P))
 
 
+def over_seeds(fn: Callable) -> Callable:
+    """`fn` mapped over the leading seed axis of its arguments and results: `jax.vmap(fn)`, except that an axis of
+    one seed runs `fn` on its only row. Same maths and random draws, but XLA compiles a vmap's size-1 batch axis
+    into slower code: on a 2-core CPU the main command compiles in 30.4 s instead of 34.9 and an epoch takes 27.6 s
+    instead of 30.1 (medians of 3 pairs; docs/results.md, "The main command"). Its floats round otherwise than in
+    the vmapped program, so a one-seed run is not bitwise the one before."""
+    vmapped = jax.vmap(fn)
+
+    def mapped(*args):
+        if jax.tree.leaves(args)[0].shape[0] != 1:
+            return vmapped(*args)
+        return jax.tree.map(lambda x: x[None], fn(*jax.tree.map(lambda x: x[0], args)))
+
+    return mapped
+
+
 def make_seeded(init: Callable, epoch: Callable, devices: Sequence[jax.Device] | None = None, shards: int = 1):
     """Seeds as one vmapped, jitted program: `init(keys[S]) -> TrainState[S]`, `epoch`.
 
@@ -108,14 +124,14 @@ def make_seeded(init: Callable, epoch: Callable, devices: Sequence[jax.Device] |
     if shards == 1:
         sharding = seed_sharding(devices)
         return (
-            jax.jit(jax.vmap(init), in_shardings=sharding, out_shardings=sharding),
-            jax.jit(jax.vmap(epoch), in_shardings=sharding, out_shardings=sharding, donate_argnums=0),
+            jax.jit(over_seeds(init), in_shardings=sharding, out_shardings=sharding),
+            jax.jit(over_seeds(epoch), in_shardings=sharding, out_shardings=sharding, donate_argnums=0),
         )
     # no vma type check: MJX's loops carry env state that starts replicated (zeros) and becomes
     # shard-varying; what leaves the program replicated is averaged or gathered (`make_train`)
     mesh, specs = _mesh(devices, shards), _state_specs()
     sharded = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
     return (
-        jax.jit(sharded(jax.vmap(init), in_specs=P(SEED_AXIS), out_specs=specs)),
-        jax.jit(sharded(jax.vmap(epoch), in_specs=(specs,), out_specs=(specs, P(SEED_AXIS))), donate_argnums=0),
+        jax.jit(sharded(over_seeds(init), in_specs=P(SEED_AXIS), out_specs=specs)),
+        jax.jit(sharded(over_seeds(epoch), in_specs=(specs,), out_specs=(specs, P(SEED_AXIS))), donate_argnums=0),
     )

@@ -8,10 +8,12 @@ import sys
 import types
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from bidal_jax.config import TrainConfig
-from bidal_jax.run.devices import device_layout, seed_devices
+from bidal_jax.run.devices import device_layout, over_seeds, seed_devices
 from experiments import run
 from tests.helpers import REPO, assert_same_metrics, rows
 from tests.helpers import SHARDED as TINY
@@ -23,6 +25,26 @@ def test_seeds_spread_over_as_many_devices_as_divide_them():
     assert seed_devices(6, devices) == devices[:2]
     assert seed_devices(1, devices) == devices[:1]
     assert seed_devices(5, devices) == devices[:1]
+
+
+@pytest.mark.parametrize("seeds", [1, 3])
+def test_over_seeds_maps_the_seed_axis_and_runs_one_seed_on_its_row(seeds):
+    """Each seed's result is `fn` of its row, with the axis kept; one seed reaches `fn` without vmap's batching."""
+    batched = []
+
+    def fn(state, key):
+        batched.append("Batch" in type(state["x"]).__name__)  # vmap's tracer
+        return {"x": state["x"] * 2 + jax.random.uniform(key)}, state["x"].sum()
+
+    state = {"x": jnp.arange(seeds * 4, dtype=jnp.float32).reshape(seeds, 4)}
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    out, total = jax.jit(over_seeds(fn))(state, keys)
+    assert out["x"].shape == (seeds, 4) and total.shape == (seeds,)
+    for i in range(seeds):
+        row, row_total = fn({"x": state["x"][i]}, keys[i])
+        np.testing.assert_allclose(out["x"][i], row["x"], rtol=1e-6)
+        np.testing.assert_allclose(total[i], row_total, rtol=1e-6)
+    assert batched[0] is (seeds > 1)
 
 
 def test_devices_the_seeds_leave_split_their_envs():
