@@ -157,12 +157,6 @@ def states_at(env, starts: Starts):
     return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
 
 
-def start_states(env, key: jax.Array, n_envs: int, exploration_starts: float = 0.0):
-    """`n_envs` initial states from `env.reset`, a fraction `exploration_starts` of them (drawn at
-    random) from `env.exploration_reset` instead (`draw_starts`)."""
-    return states_at(env, draw_starts(key, n_envs, exploration_starts))
-
-
 def _no_record(step: Step) -> None:
     return None
 
@@ -187,7 +181,7 @@ def rollout(
       key: PRNG key: the start states (unless `states` is given) and each step's key (the
         policy's input unless `inputs` is given).
       n_envs: how many envs start from `env.reset`; omit when `states` is given.
-      states: batched start states (e.g. `start_states(...)` with exploration starts).
+      states: batched start states (e.g. `states_at(env, draw_starts(...))` with exploration starts).
       steps: control periods to run (default `env.episode_length`).
       inputs: per-step policy inputs [steps, ...] used instead of keys (e.g. open-loop actions).
       record: `record(step)` of each `Step`, stacked over steps as the second output.
@@ -199,7 +193,7 @@ def rollout(
     """
     key_reset, key_steps = jax.random.split(key)
     if states is None:
-        states = start_states(env, key_reset, n_envs)
+        states = states_at(env, draw_starts(key_reset, n_envs))
     n_steps = jax.tree.leaves(inputs)[0].shape[0] if inputs is not None else steps or env.episode_length
     keys = jax.random.split(key_steps, n_steps)
 

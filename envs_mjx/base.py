@@ -199,7 +199,13 @@ class Env(abc.ABC):
         self.observation_spec = observation_spec
         self.render = render
         self.camera_name = camera_name
-        self.camera = Camera(mj_model, camera_name, IMAGE_SHAPE[0], supersample=self.camera_supersample)
+        self.set_camera_supersample(self.camera_supersample)
+
+    def set_camera_supersample(self, supersample: int) -> None:
+        """Cast `supersample`² rays per pixel of the 42×42 frame (area-averaged down) and rebuild the camera,
+        e.g. to measure what a finer frame would show (`experiments.probes.vision --supersample`)."""
+        self.camera_supersample = supersample
+        self.camera = Camera(self.mj_model, self.camera_name, IMAGE_SHAPE[0], supersample=supersample)
 
     def use_backend(
         self, backend: str, worlds: int = 1, contacts_per_world: int = 32, constraints_per_world: int = 128

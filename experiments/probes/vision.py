@@ -61,8 +61,6 @@ import envs_mjx
 from bidal_jax.config import ConfigError, NetworkConfig, parse_strides
 from bidal_jax.networks import VisionBranch
 from bidal_jax.run import validate
-from envs_mjx.base import IMAGE_SHAPE
-from envs_mjx.camera import Camera
 from envs_mjx.nicol import NicolEnv
 from experiments import cli
 from experiments.probes import phases
@@ -246,7 +244,7 @@ def checked(args: argparse.Namespace) -> tuple[list[str], list[tuple[int, ...]]]
 def with_supersample(env, supersample: int):
     """`env`, its camera casting `supersample`² rays per pixel where `supersample` is set (0: as built)."""
     if supersample:
-        env.camera = Camera(env.mj_model, env.camera_name, IMAGE_SHAPE[0], supersample=supersample)
+        env.set_camera_supersample(supersample)
     return env
 
 
