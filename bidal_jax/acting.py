@@ -47,6 +47,7 @@ class Step(NamedTuple):
 
 # what a rollout records per step: record(step) -> pytree
 Recorder = Callable[[Step], Any]
+ACTING_SCOPE = "acting"  # `jax.named_scope` of the policy's pass in a rollout (profiles attribute kernels by it)
 
 
 @struct.dataclass
@@ -199,8 +200,9 @@ def rollout(
 
     def body(state, xs):
         key, x = xs
-        obs = state.obs if observe is None else observe(state.obs, jax.random.fold_in(key, 1))
-        action = policy(obs, x)
+        with jax.named_scope(ACTING_SCOPE):
+            obs = state.obs if observe is None else observe(state.obs, jax.random.fold_in(key, 1))
+            action = policy(obs, x)
         next_state = jax.vmap(traced_once(env.step))(state, action)
         return next_state, record(Step(state, obs, action, next_state))
 

@@ -97,6 +97,11 @@ def branch(pred: bool | jax.Array, on_true: Callable, on_false: Callable, *opera
     return jax.lax.cond(pred, on_true, on_false, *operands)
 
 
+# `jax.named_scope`s of an epoch's parts, by which profiles attribute its kernels (experiments/bench/tracing.py)
+UPDATE_SCOPE, REPLAY_SCOPE, OPTIMISER_SCOPE, TARGET_SCOPE = "update", "replay", "optimiser", "target"
+EVALUATION_SCOPE, NORMALISER_SCOPE = "evaluation", "normalisers"
+
+
 def optimizer(lr: float, grad_clip: float) -> optax.GradientTransformation:
     return optax.chain(optax.clip_by_global_norm(grad_clip), optax.adam(lr))
 
@@ -181,26 +186,26 @@ def make_learner(env, config: Config, shards: Shards) -> Learner:
     optimizers = {step.name: optimizer(step.learning_rate(train), train.grad_clip) for step in steps}
     future_p, n_batch = her_probability(train.her_k), train.batch_size // shards.count
 
+    @jax.named_scope(UPDATE_SCOPE)
     def update(ts: TrainState, key: jax.Array) -> tuple[TrainState, dict]:
         """One gradient step of each of the family's `update_order` steps (DDPG + BidAL: the representation
         group, encoder, critic, f and g, then the actor), each on the parameters the earlier ones left."""
-        batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
-        batch = normalized_batch(batch, ts, train.clip_obs)
+        with jax.named_scope(REPLAY_SCOPE):
+            batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
+            batch = normalized_batch(batch, ts, train.clip_obs)
         params, opt_state, metrics = ts.params, {}, {}
         for step in steps:
             trained = step.trained(params)
             grads, aux = jax.grad(losses[step.name], has_aux=True)(trained, params, ts.target_params, batch)
-            updates, opt_state[step.name] = optimizers[step.name].update(
-                shards.average(grads), ts.opt_state[step.name], trained)
-            params = step.merged(params, optax.apply_updates(trained, updates))
+            with jax.named_scope(OPTIMISER_SCOPE):
+                updates, opt_state[step.name] = optimizers[step.name].update(
+                    shards.average(grads), ts.opt_state[step.name], trained)
+                params = step.merged(params, optax.apply_updates(trained, updates))
             batch = {**batch, **{name: aux.pop(name) for name in step.passes}}
             metrics.update(aux)
-        ts = ts.replace(
-            params=params,
-            target_params=polyak(ts.target_params, params, train.tau),
-            opt_state=opt_state,
-            updates=ts.updates + 1,
-        )
+        with jax.named_scope(TARGET_SCOPE):
+            target_params = polyak(ts.target_params, params, train.tau)
+        ts = ts.replace(params=params, target_params=target_params, opt_state=opt_state, updates=ts.updates + 1)
         return ts, metrics
 
     return Learner(networks, optimizers, update)
@@ -313,12 +318,14 @@ def make_train(env, config: Config, env_shards: int = 1):
         """A cycle's learning from its rollout (its episodes already inserted): update the normalisers, then
         `updates_per_cycle` gradient steps. The state comes back without its buffer, which no update changes."""
         # the goal normaliser sees the goals the critic will see: desired and HER-relabelled
-        goals = replay.her_goals(episodes, shards.own_key(phase.key_goals), n_envs * env.episode_length, future_p)
-        ts = ts.replace(
-            proprio_norm=normalizer.update(ts.proprio_norm, shards.everyone(episodes["proprio"])),
-            goal_norm=normalizer.update(ts.goal_norm, shards.everyone(goals)),
-            env_steps=ts.env_steps + train.num_envs * env.episode_length,
-        )
+        with jax.named_scope(NORMALISER_SCOPE):
+            goals = replay.her_goals(episodes, shards.own_key(phase.key_goals), n_envs * env.episode_length,
+                                     future_p)
+            ts = ts.replace(
+                proprio_norm=normalizer.update(ts.proprio_norm, shards.everyone(episodes["proprio"])),
+                goal_norm=normalizer.update(ts.goal_norm, shards.everyone(goals)),
+                env_steps=ts.env_steps + train.num_envs * env.episode_length,
+            )
         ts, metrics = jax.lax.scan(update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
         train_success = shards.average(final.metrics["success"].mean())
         return ts.replace(buffer=None), {**shards.average(jax.tree.map(jnp.mean, metrics)),
@@ -354,8 +361,9 @@ def make_train(env, config: Config, env_shards: int = 1):
         ts, plan, final, records = phase(ts, index - cycles, evaluating)
         last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
                                                                jax.random.fold_in(plan.key, 2))
-        episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
-        buffer = insert(ts.buffer, episodes, evaluating)
+        with jax.named_scope(REPLAY_SCOPE):
+            episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
+            buffer = insert(ts.buffer, episodes, evaluating)
         ts, metrics = branch(evaluating, skip, learned, ts.replace(buffer=buffer), plan, final, episodes)
         ts = ts.replace(buffer=buffer)
         return ts, (metrics, final.metrics["success"], final.info["goal"])
@@ -367,7 +375,8 @@ def make_train(env, config: Config, env_shards: int = 1):
         if chunks:
             success, goals = success[cycles:].reshape(-1), goals[cycles:].reshape(-1, goals.shape[-1])
         else:
-            ts, _, final, _ = phase(ts, 0, True)
+            with jax.named_scope(EVALUATION_SCOPE):
+                ts, _, final, _ = phase(ts, 0, True)
             success, goals = final.metrics["success"], final.info["goal"]
         ts = ts.replace(epoch=ts.epoch + 1)
         metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),

@@ -34,6 +34,8 @@ from envs_mjx.camera import Camera
 ASSETS_DIR = importlib.resources.files("envs_mjx.assets")
 CONTROL_PERIOD = 0.04  # seconds, 25 Hz (docs/tasks.md)
 IMAGE_SHAPE = (42, 42, 1)  # grayscale, paper Table I
+# `jax.named_scope`s of a step's physics and camera: profiles attribute their kernels by them (experiments/bench)
+PHYSICS_SCOPE, CAMERA_SCOPE = "physics", "camera"
 
 
 @struct.dataclass
@@ -349,9 +351,10 @@ class Env(abc.ABC):
             data = mjx.step(self.mjx_model, self._substep_controls(state.data, commanded, data, i))
             return data, probe(data)
 
-        data, trace = jax.lax.scan(substep, commanded, jnp.arange(self.n_substeps))
-        # mjx.step leaves positions one substep behind qpos; refresh them for obs and camera
-        data = mjx.kinematics(self.mjx_model, data)
+        with jax.named_scope(PHYSICS_SCOPE):
+            data, trace = jax.lax.scan(substep, commanded, jnp.arange(self.n_substeps))
+            # mjx.step leaves positions one substep behind qpos; refresh them for obs and camera
+            data = mjx.kinematics(self.mjx_model, data)
         goal = state.info["goal"]
         obs = self._observe(data, goal)
         reward = self.compute_reward(obs["achieved_goal"], goal)
@@ -370,7 +373,8 @@ class Env(abc.ABC):
         segments = self._proprio(data)
         proprio = jnp.concatenate([segments[n] for n in self.observation_spec.segment_names]).astype(jnp.float32)
         if self.render:
-            image = self.camera.render(self.mjx_model, data)
+            with jax.named_scope(CAMERA_SCOPE):
+                image = self.camera.render(self.mjx_model, data)
         else:
             image = jnp.zeros(IMAGE_SHAPE, jnp.uint8)
         return {

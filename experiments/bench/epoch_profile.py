@@ -8,8 +8,10 @@
 Builds the preset's training program as `experiments.bench.throughput --devices 1` does (with a `--variant`'s
 overrides, as `experiments.bench.sweep` reads them), runs two epochs (compilation, then a warm epoch, whose
 untraced time it prints at once), then traces a third with `jax.profiler.trace` (the trace, with a Perfetto
-JSON copy, stays in `--out` for TensorBoard or ui.perfetto.dev) and prints, per device stream and
-host thread, the seconds its events add up to, how many there are, and its largest operations.
+JSON copy, stays in `--out` for TensorBoard or ui.perfetto.dev) and prints the device's time per part of the
+epoch (physics, camera, the policy in rollouts, replay, each network's forward and backward pass in the
+updates, the optimiser, evaluation: `tracing.component`), then, per device stream and host thread, the seconds
+its events add up to, how many there are, and its largest operations.
 On a GPU the event count of the compute stream is the number of kernels an epoch launches: when
 it, rather than the work per kernel, sets the epoch's time, more seeds per device cost little and
 more devices gain little (docs/results.md, "Where the time goes").
@@ -27,22 +29,25 @@ import envs_mjx
 from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
 from experiments.bench.programs import parse_variant, seeded_program
-from experiments.bench.tracing import print_summary, traced
+from experiments.bench.tracing import print_components, print_summary, traced
 
 
 def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10,
-                  variant: str = "preset") -> tuple[float, list[dict]]:
-    """(the traced epoch's wall seconds, `summarise(..., top)` of its trace), written to `out`, of the preset
-    with `variant`'s overrides (`programs.parse_variant`); prints the compiling and the warm epoch's seconds."""
+                  variant: str = "preset") -> tuple[float, list[dict], list[dict]]:
+    """(the traced epoch's wall seconds, `summarise(..., top)` of its trace, `by_component` of it), written to
+    `out`, of the preset with `variant`'s overrides (`programs.parse_variant`); prints the compiling and the warm
+    epoch's seconds."""
     train, network, options = parse_variant(variant)
     init, epoch, *_ = seeded_program(name, agent, seeds, train=train, network=network, options=options)
     state = init(jax.random.split(jax.random.PRNGKey(0), seeds))
+    start = time.perf_counter()
+    compiled = epoch.lower(state).compile()  # its HLO text names the kernels' parts
     for label in ("first epoch (compilation included)", "warm epoch, untraced"):
-        start = time.perf_counter()
-        state, metrics = epoch(state)
+        state, metrics = compiled(state)
         jax.block_until_ready(metrics)
         print(f"{label}: {time.perf_counter() - start:.2f} s", flush=True)
-    return traced(lambda: epoch(state)[1], out, top)
+        start = time.perf_counter()
+    return traced(lambda: compiled(state)[1], out, top, compiled.as_text())
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -63,12 +68,13 @@ def main(argv: list[str] | None = None) -> None:
     except ConfigError as err:
         raise SystemExit(f"error: {err}") from err
     out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
-    wall, rows = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant)
+    wall, rows, parts = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant)
     device = jax.devices()[0]
     print(
         f"{args.env} {args.agent} ({args.variant}), {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "
         f"traced epoch {wall:.2f} s (profiling slows it); trace in {out}"
     )
+    print_components(parts, wall)
     print_summary(rows, args.streams)
 
 

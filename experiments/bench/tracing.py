@@ -1,9 +1,16 @@
-"""A JAX profiler trace of one call, summarised per device stream and host thread (the benchmarks' shared part).
+"""A JAX profiler trace of one call, summarised per device stream and host thread and per part of the program
+(the benchmarks' shared part).
 
 `traced(fn, out)` runs `fn` once under `jax.profiler.trace` (the trace, with a Perfetto JSON copy, stays in
 `out` for TensorBoard or ui.perfetto.dev) and returns its wall seconds and `summarise` of the trace: per stream
 or thread, the seconds its events add up to, how many there are and its largest operations. On a GPU the event
 count of the compute stream is the number of kernels the call launched.
+
+Given the compiled program's HLO text, `traced` also attributes each device event to a part of the epoch
+(`component`): XLA names a kernel after its fused instruction, whose metadata keeps the `jax.named_scope`s it was
+traced under (`bidal_jax.train.UPDATE_SCOPE` and the others, the env's physics and camera, the Flax modules of
+the networks, `transpose(...)` for a backward pass). A fusion carries the scopes of one of the operations it
+fused, so a kernel that fuses the end of one part with the start of the next counts for one of them.
 """
 
 from __future__ import annotations
@@ -13,10 +20,112 @@ import glob
 import gzip
 import json
 import os
+import re
 import time
 from typing import Any, Callable
 
 import jax
+
+from bidal_jax import acting, networks, train
+from envs_mjx.base import CAMERA_SCOPE, PHYSICS_SCOPE
+
+NETWORKS = tuple(cls.__name__ for cls in (networks.Encoder, networks.Critic, networks.Actor, networks.ForwardModel,
+                                          networks.InverseModel))  # the Flax modules' scopes in an op's name
+# parts of the update, then of the rest of the epoch, by the scope that marks them (the first found counts)
+UPDATE_PARTS = ((train.REPLAY_SCOPE, "replay and HER sampling"), (train.OPTIMISER_SCOPE, "optimiser (Adam)"),
+                (train.TARGET_SCOPE, "target networks (Polyak)"))
+EPOCH_PARTS = ((PHYSICS_SCOPE, "physics"), (CAMERA_SCOPE, "camera"), (acting.ACTING_SCOPE, "policy in rollouts"),
+               (train.REPLAY_SCOPE, "replay insert"), (train.NORMALISER_SCOPE, "normalisers"))
+GPU_EVENTS = 16_000_000  # device events a trace keeps (`profile_options`); a NICOL image epoch launches ~3 M
+_COMPUTATION = re.compile(r"^(?:ENTRY\s+)?%([\w.\-]+)\s.*\{\s*$")
+_INSTRUCTION = re.compile(r"^\s*(?:ROOT\s+)?%([\w.\-]+)\s*=\s*(.*)$")
+_OP_NAME, _CALLS = re.compile(r'op_name="([^"]*)"'), re.compile(r"calls=%([\w.\-]+)")
+_OPERAND = re.compile(r"%([\w.\-]+)")
+
+
+def kernel_name(instruction: str) -> str:
+    """The name XLA gives the GPU kernel of an HLO instruction ("loop_add_fusion.3" -> "loop_add_fusion_3")."""
+    return re.sub(r"[.\-]", "_", instruction)
+
+
+def op_names(hlo_text: str) -> dict[str, str]:
+    """{kernel name: op_name} of the instructions of a compiled module's HLO text. An instruction XLA made without
+    an op_name (a multi-output fusion, a concatenation it merged) takes the first op_name inside the computation
+    it calls, else that of the nearest instruction it reads (followed back through operands without one)."""
+    own, calls, operands, first_in = {}, {}, {}, {}
+    computation = None
+    for line in hlo_text.splitlines():
+        if (header := _COMPUTATION.match(line)) is not None:
+            computation = header.group(1)
+            continue
+        if (instruction := _INSTRUCTION.match(line)) is None:
+            continue
+        name, rest = instruction.groups()
+        body, _, metadata = rest.partition("metadata=")
+        if (op := _OP_NAME.search(metadata)) is not None:
+            own[name] = op.group(1)
+            first_in.setdefault(computation, op.group(1))
+        if (called := _CALLS.search(body)) is not None:
+            calls[name] = called.group(1)
+        operands[name] = _OPERAND.findall(body.split("calls=")[0])
+
+    def resolve(name: str, hops: int = 8) -> str | None:
+        """The op_name of `name`, else of the nearest instruction it reads within `hops` operands."""
+        frontier, seen = [name], {name}
+        for _ in range(hops):
+            for each in frontier:
+                if each in own:
+                    return own[each]
+                if calls.get(each) in first_in:
+                    return first_in[calls[each]]
+            frontier = [o for each in frontier for o in operands.get(each, ()) if o not in seen and not seen.add(o)]
+        return None
+
+    return {kernel_name(name): op for name in operands for op in [resolve(name)] if op is not None}
+
+
+def component(op_name: str) -> str:
+    """The part of a training epoch an operation belongs to, by the scopes in its `op_name`
+    ("jit(epoch)/.../update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/..." -> "update: Encoder backward")."""
+    scopes = [re.sub(r"^(?:\w+\()+|\)+$", "", part) for part in op_name.split("/")]  # transforms stripped
+    if train.EVALUATION_SCOPE in scopes:
+        return "evaluation"
+    if train.UPDATE_SCOPE in scopes:
+        part = next((label for scope, label in UPDATE_PARTS if scope in scopes), None)
+        network = next((scope for scope in scopes if scope in NETWORKS), None)
+        if part is None and network is not None:
+            part = f"{network} {'backward' if 'transpose(' in op_name else 'forward'}"
+        return f"update: {part or 'losses and the rest'}"
+    return next((label for scope, label in EPOCH_PARTS if scope in scopes), "other")
+
+
+def by_component(events: list[dict], names: dict[str, str]) -> list[dict]:
+    """A trace's operations per `component` of their op_name in `names` (`op_names`): rows of {component,
+    seconds, events, top: its 2 largest kernels as (name, share of its seconds)}, largest first. On a GPU the
+    operations are the device's events, and a kernel found by neither its name nor its "hlo_op" argument (a
+    library's kernel, a copy) is "unattributed"; on a CPU they are the host's events of an HLO instruction (an
+    "hlo_op" argument), less control flow (a loop's event spans its body's)."""
+    devices = {e["pid"] for e in events
+               if e.get("ph") == "M" and e.get("name") == "process_name" and e["args"]["name"].startswith("/device:")}
+
+    def counted(e: dict) -> bool:
+        if e.get("ph") != "X":
+            return False
+        if devices:
+            return e["pid"] in devices
+        return not e.get("args", {}).get("hlo_op", "while").startswith(("while", "conditional", "call"))
+
+    seconds, count = collections.Counter(), collections.Counter()
+    kernels = collections.defaultdict(collections.Counter)
+    for e in filter(counted, events):
+        op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
+        part = component(op) if op else "unattributed"
+        seconds[part] += e.get("dur", 0) / 1e6
+        count[part] += 1
+        kernels[part][e["name"]] += e.get("dur", 0) / 1e6
+    return [{"component": part, "seconds": s, "events": count[part],
+             "top": [(name, t / max(s, 1e-12)) for name, t in kernels[part].most_common(2)]}
+            for part, s in seconds.most_common()]
 
 
 def summarise(events: list[dict], top: int = 10) -> list[dict]:
@@ -47,16 +156,45 @@ def summarise(events: list[dict], top: int = 10) -> list[dict]:
     ]
 
 
-def traced(fn: Callable[[], Any], out: str, top: int = 10) -> tuple[float, list[dict]]:
-    """(wall seconds of `fn()` until its result is ready, `summarise(..., top)` of its trace written to `out`)."""
-    with jax.profiler.trace(out, create_perfetto_trace=True):
+def profile_options(events: int = GPU_EVENTS) -> jax.profiler.ProfileOptions:
+    """The profiler's options with room for `events` GPU kernel events and API callbacks (the profiler's own
+    limit, about 2 million, drops the rest: the end of a NICOL image epoch, its evaluation included)."""
+    options = jax.profiler.ProfileOptions()
+    options.advanced_configuration = {"gpu_max_activity_api_events": events, "gpu_max_callback_api_events": events}
+    return options
+
+
+def traced(fn: Callable[[], Any], out: str, top: int = 10, hlo_text: str = "") -> tuple[float, list[dict], list[dict]]:
+    """(wall seconds of `fn()` until its result is ready, `summarise(..., top)` of its trace written to `out`,
+    `by_component` of its device events given the HLO text of the program `fn` runs, which then goes to
+    `out`/program.hlo.txt; [] without)."""
+    with jax.profiler.trace(out, create_perfetto_trace=True, profiler_options=profile_options()):
         start = time.perf_counter()
         jax.block_until_ready(fn())
         wall = time.perf_counter() - start
     newest = max(glob.glob(os.path.join(out, "**", "perfetto_trace.json.gz"), recursive=True), key=os.path.getmtime)
     with gzip.open(newest) as f:
         trace = json.load(f)
-    return wall, summarise(trace["traceEvents"] if isinstance(trace, dict) else trace, top)
+    events = trace["traceEvents"] if isinstance(trace, dict) else trace
+    if not hlo_text:
+        return wall, summarise(events, top), []
+    with open(os.path.join(out, "program.hlo.txt"), "w") as f:  # what the kernels' names refer to
+        f.write(hlo_text)
+    return wall, summarise(events, top), by_component(events, op_names(hlo_text))
+
+
+def print_components(rows: list[dict], wall: float, unit: str = "s") -> None:
+    """A markdown table of `by_component`'s rows (their seconds and events in `unit`s, e.g. per update):
+    the device's time, its share of all device events' time, events."""
+    total = sum(r["seconds"] for r in rows)
+    print(f"\ntime by part of the program: {total:.3f} {unit} of the device's operations in {wall:.3f} {unit} of "
+          "wall time\n")
+    print(f"| part | device {unit} | share | events | largest kernels |")
+    print("| --- | --- | --- | --- | --- |")
+    for r in rows:
+        largest = ", ".join(f"{name[:48]} {share:.0%}" for name, share in r["top"])
+        print(f"| {r['component']} | {r['seconds']:.3f} | {r['seconds'] / max(total, 1e-12):.1%} "
+              f"| {r['events']:,.0f} | {largest} |")
 
 
 def print_summary(rows: list[dict], streams: int) -> None:

@@ -10,7 +10,9 @@ env step is traced, so a variant compiles in seconds where an image agent's epoc
 holds overrides of the preset as `experiments.bench.sweep` reads them (`k=v,net.k=v`). Per variant it prints the
 compilation's seconds, XLA's cost estimate of one update (FLOPs and bytes accessed), the warm milliseconds per update
 of all seeds (median of `--repeats` calls) and the speed-up over the first variant; `--profile DIR` also traces
-one warm call per variant and prints the kernels (device events) per update and the largest ones.
+one warm call per variant and prints the kernels (device events) per update, the kernels' time per part of the
+update (each network's forward and backward pass, the optimiser, replay sampling: `tracing.component`) and the
+largest kernels.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
 from bidal_jax.train import Shards, make_learner, make_train
 from experiments.bench.programs import parse_variant, program_config, timed
-from experiments.bench.tracing import print_summary, traced
+from experiments.bench.tracing import print_components, print_summary, traced
 
 
 def full_buffer(ts):
@@ -76,10 +78,10 @@ def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, varia
 
     seconds = timed(call, repeats)["warm_seconds"]
     row = {"variant": variant, "compile_s": compile_s, "gflop": flops / 1e9, "gb": bytes_accessed / 1e9,
-           "ms": 1e3 * seconds / updates, "trace": []}
+           "ms": 1e3 * seconds / updates, "trace": [], "parts": []}
     if profile:
         out = os.path.join(profile, variant.replace("/", "_").replace(",", "_"))
-        _, row["trace"] = traced(call, out)
+        _, row["trace"], row["parts"] = traced(call, out, hlo_text=compiled.as_text())
     return row
 
 
@@ -119,11 +121,12 @@ def main(argv: list[str] | None = None) -> None:
         kernels = kernels_per_update(row["trace"], args.updates)
         print(f"| {row['variant']} | {row['compile_s']:.1f} | {row['gflop']:.2f} | {row['gb']:.2f} | {row['ms']:.3f} "
               f"| {rows[0]['ms'] / row['ms']:.2f}× | {'–' if kernels is None else f'{kernels:.0f}'} |")
-    for row in rows:
-        device_rows = [r for r in row["trace"] if r["process"].startswith("/device:")]
-        if device_rows:
-            print(f"\n## {row['variant']}")
-            print_summary(device_rows, 2)
+    for row in filter(lambda row: row["parts"], rows):
+        print(f"\n## {row['variant']}")
+        per_update = [{**r, "seconds": 1e3 * r["seconds"] / args.updates, "events": r["events"] / args.updates}
+                      for r in row["parts"]]
+        print_components(per_update, row["ms"], "ms per update")
+        print_summary([r for r in row["trace"] if r["process"].startswith("/device:")], 2)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
 """experiments.bench.epoch_profile: its option checks; experiments.bench.tracing: the trace summary (a synthetic
-trace)."""
+trace) and the attribution of kernels to the parts of an epoch (synthetic HLO text and traces)."""
 
 import pytest
 
@@ -29,3 +29,81 @@ def test_summarise_groups_by_stream_counts_events_and_ranks_operations():
 def test_bad_seed_count_is_a_one_line_error():
     with pytest.raises(SystemExit, match="--seeds 0: must be a positive integer"):
         bench_profile.main(["--seeds", "0"])
+
+
+HLO = """\
+%fused_concatenate.11 (param_0.1: bf16[2,3]) -> bf16[2,6] {
+  %param_0.1 = bf16[2,3]{1,0} parameter(0), metadata={scheduling_name="param_0.1"}
+  ROOT %concatenate.4 = bf16[2,6]{1,0} concatenate(%param_0.1, %param_0.1), dimensions={1}
+}
+
+%fused_add (p: f32[2]) -> f32[2] {
+  %p = f32[2]{0} parameter(0)
+  ROOT %add.1 = f32[2]{0} add(%p, %p), metadata={op_name="jit(epoch)/while/body/update/optimiser/add"}
+}
+
+ENTRY %main.5 (a: bf16[2,3], b: f32[2]) -> bf16[2,6] {
+  %a = bf16[2,3]{1,0} parameter(0)
+  %gemm_fusion_dot.84 = bf16[2,3]{1,0} fusion(%a), kind=kCustom, metadata={op_name="{ENCODER}"}
+  %gte.2 = bf16[2,3]{1,0} get-tuple-element(%gemm_fusion_dot.84), index=0
+  %input_concatenate_fusion.7 = bf16[2,6]{1,0} fusion(%gte.2), calls=%fused_concatenate.11, metadata={x="y"}
+  %loop_add_fusion = f32[2]{0} fusion(%b), kind=kLoop, calls=%fused_add
+  ROOT %copy.1 = bf16[2,6]{1,0} copy(%input_concatenate_fusion.7), metadata={op_name="jit(epoch)/physics/copy"}
+}
+""".replace("{ENCODER}", "jit(epoch)/update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/PatchConv_1/dot_general")
+
+
+def test_kernels_are_named_after_their_instructions_and_inherit_a_missing_op_name():
+    names = tracing.op_names(HLO)
+    assert names["gemm_fusion_dot_84"].endswith("PatchConv_1/dot_general")
+    assert names["loop_add_fusion"].endswith("update/optimiser/add")  # from inside the computation it calls
+    assert names["input_concatenate_fusion_7"] == names["gemm_fusion_dot_84"]  # from the fusion it reads, via a GTE
+    assert "a" not in names  # a parameter with no op_name anywhere behind it
+
+
+@pytest.mark.parametrize("op_name, part", [
+    ("jit(epoch)/while/body/update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/PatchConv_1/dot_general",
+     "update: Encoder backward"),
+    ("jit(epoch)/while/body/update/vmap(jvp(Critic))/Dense_0/dot_general", "update: Critic forward"),
+    ("jit(epoch)/while/body/update/optimiser/Encoder/add", "update: optimiser (Adam)"),
+    ("jit(epoch)/while/body/update/replay/gather", "update: replay and HER sampling"),
+    ("jit(epoch)/while/body/update/mul", "update: losses and the rest"),
+    ("jit(epoch)/while/body/vmap(physics)/while/body/mul", "physics"),
+    ("jit(epoch)/while/body/camera/reduce_max", "camera"),
+    ("jit(epoch)/while/body/acting/Encoder/VisionBranch_0/dot_general", "policy in rollouts"),
+    ("jit(epoch)/evaluation/while/body/physics/mul", "evaluation"),
+    ("jit(epoch)/add", "other"),
+])
+def test_each_operation_counts_for_the_part_its_scopes_name(op_name, part):
+    assert tracing.component(op_name) == part
+
+
+def test_device_events_add_up_by_part_and_a_library_kernel_by_its_hlo_op():
+    names = tracing.op_names(HLO)
+    events = [
+        {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+        {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
+        {"ph": "X", "pid": 1, "tid": 7, "name": "gemm_fusion_dot_84", "dur": 3.0},
+        {"ph": "X", "pid": 1, "tid": 7, "name": "input_concatenate_fusion_7", "dur": 1.0},
+        {"ph": "X", "pid": 1, "tid": 7, "name": "sm90_xmma_gemm", "dur": 2.0, "args": {"hlo_op": "copy.1"}},
+        {"ph": "X", "pid": 1, "tid": 7, "name": "MemcpyD2D", "dur": 5.0},
+        {"ph": "X", "pid": 2, "tid": 1, "name": "gemm_fusion_dot_84", "dur": 9.0},  # the host's: not counted
+    ]
+    rows = {r["component"]: r for r in tracing.by_component(events, names)}
+    assert set(rows) == {"update: Encoder backward", "physics", "unattributed"}
+    assert rows["update: Encoder backward"]["seconds"] == pytest.approx(4e-6)
+    assert rows["update: Encoder backward"]["events"] == 2
+    assert rows["update: Encoder backward"]["top"][0] == ("gemm_fusion_dot_84", pytest.approx(0.75))
+    assert rows["physics"]["seconds"] == pytest.approx(2e-6)
+    assert rows["unattributed"]["seconds"] == pytest.approx(5e-6)
+
+
+def test_on_a_cpu_host_operations_count_less_control_flow():
+    names = {"add_fusion_1": "jit(epoch)/update/optimiser/add", "while_3": "jit(epoch)/update/while"}
+    events = [
+        {"ph": "X", "pid": 2, "tid": 1, "name": "add_fusion.1", "dur": 2.0, "args": {"hlo_op": "add_fusion.1"}},
+        {"ph": "X", "pid": 2, "tid": 1, "name": "while.3", "dur": 9.0, "args": {"hlo_op": "while.3"}},
+        {"ph": "X", "pid": 2, "tid": 1, "name": "ThunkExecutor::Execute", "dur": 9.0},
+    ]
+    assert [(r["component"], r["events"]) for r in tracing.by_component(events, names)] == [
+        ("update: optimiser (Adam)", 1)]

@@ -4,6 +4,7 @@ import jax
 import numpy as np
 import pytest
 
+from experiments.bench import tracing
 from experiments.bench import updates as bench_updates
 
 TINY = "batch_size=8,buffer_episodes=32,num_envs=16,net.hidden_size=16,net.embed_size=8"
@@ -16,6 +17,16 @@ def test_the_program_runs_the_asked_updates_of_every_seed_on_a_full_buffer():
     after, metrics = compiled(ts, keys)
     np.testing.assert_array_equal(after.updates, [3, 3])
     assert jax.tree.leaves(metrics)[0].shape[:2] == (2, 3)  # [seeds, updates]
+
+
+def test_the_compiled_update_names_its_parts_for_the_profile():
+    """The learner's `jax.named_scope`s reach the compiled program, so that `tracing.by_component` can attribute its
+    kernels: every part of a BidAL image agent's update is found among its instructions' op_names."""
+    compiled, *_ = bench_updates.update_program("planar_reach", "multimodal_bidal", 1, 1, TINY + ",net.conv_channels=2")
+    parts = {tracing.component(op) for op in tracing.op_names(compiled.as_text()).values()}
+    assert {f"update: {network} {direction}" for network in tracing.NETWORKS for direction in ("forward", "backward")
+            } | {"update: optimiser (Adam)", "update: target networks (Polyak)", "update: replay and HER sampling"
+                 } <= parts
 
 
 def test_kernels_per_update_reads_the_busiest_device_stream():
