@@ -57,7 +57,7 @@ def _name_list(v: str) -> bool:
     return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
 
 
-CONV_IMPLS = ("patch", "taps", "native")  # NetworkConfig.conv_impl
+CONV_IMPLS = ("patch", "taps", "native", "stacked")  # NetworkConfig.conv_impl
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
 INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
@@ -88,7 +88,9 @@ class NetworkConfig:
         "patch",
         "how the vision branch's convs are computed: 'patch' (strided slices concatenated into patches and one "
         "matmul: 3-4× faster than 'native' on XLA:CPU, about 5× on one H100), 'taps' (a matmul per kernel tap, "
-        "summed: no patch tensor) or 'native' (XLA's convolution, cuDNN on a GPU); the same function and "
+        "summed: no patch tensor), 'native' (XLA's convolution, cuDNN on a GPU; under the seeds' vmap a grouped "
+        "convolution) or 'stacked' (XLA's convolution of the seeds stacked along the channels with a "
+        "block-diagonal kernel: one dense convolution for all seeds); the same function and "
         "parameters, so runs of any compare and resume alike",
         one_of(CONV_IMPLS),
     )

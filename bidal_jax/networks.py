@@ -16,6 +16,7 @@ imports the agents, which build these networks).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable
 
 import chex
@@ -33,6 +34,64 @@ def parse_strides(text: str) -> tuple[int, ...]:
     return strides
 
 
+_NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def _conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    """XLA's unpadded convolution of x [B, H, W, C] by kernel [k, k, C, F] with `stride`."""
+    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID", dimension_numbers=_NHWC)
+
+
+def _stacked_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    """`_conv` of S models at once, x [S, B, H, W, C] by their kernels [S, k, k, C, F] -> [S, B, H', W', F], as one
+    convolution of S·C channels: model s's frames are channels s·C..s·C+C-1 and the kernel [k, k, S·C, S·F] is
+    block-diagonal, so that no model reads another's channels (S times the arithmetic of a grouped convolution,
+    which cuDNN runs far slower than one dense convolution of S·C channels)."""
+    models, batch, height, width, channels = x.shape
+    k, features = kernel.shape[1], kernel.shape[-1]
+    stacked = x.transpose(1, 2, 3, 0, 4).reshape(batch, height, width, models * channels)
+    diagonal = jnp.einsum("st,sijcf->ijsctf", jnp.eye(models, dtype=kernel.dtype), kernel)
+    y = _conv(stacked, diagonal.reshape(k, k, models * channels, models * features), stride)
+    return y.reshape(*y.shape[:3], models, features).transpose(3, 0, 1, 2, 4)
+
+
+def _batched(axis_size: int, in_batched: list, *args: jax.Array) -> list[jax.Array]:
+    """`args` each with the vmapped axis in front (broadcast where it is not batched)."""
+    return [a if b else jnp.broadcast_to(a, (axis_size, *a.shape)) for a, b in zip(args, in_batched, strict=True)]
+
+
+@functools.lru_cache(maxsize=None)
+def seed_stacked_conv(stride: int) -> Callable[[jax.Array, jax.Array], jax.Array]:
+    """`_conv` with `stride` as a function `conv(x, kernel)` that, under `jax.vmap` over models with a kernel each
+    (the seeds), runs as `_stacked_conv`, and so do its gradients: `custom_vmap` gives the batching rule of the
+    convolution and of its VJP, `custom_vjp` joins them (`custom_vmap` has no reverse-mode derivative of its own).
+    Unbatched it is `_conv`. Same function and gradients as `_conv` up to float rounding."""
+
+    @jax.custom_batching.custom_vmap
+    def forward(x, kernel):
+        return _conv(x, kernel, stride)
+
+    @forward.def_vmap
+    def _(axis_size, in_batched, x, kernel):
+        return _stacked_conv(*_batched(axis_size, in_batched, x, kernel), stride), True
+
+    @jax.custom_batching.custom_vmap
+    def backward(x, kernel, dy):
+        return jax.vjp(lambda x, kernel: _conv(x, kernel, stride), x, kernel)[1](dy)
+
+    @backward.def_vmap
+    def _(axis_size, in_batched, x, kernel, dy):
+        x, kernel, dy = _batched(axis_size, in_batched, x, kernel, dy)
+        return jax.vjp(lambda x, kernel: _stacked_conv(x, kernel, stride), x, kernel)[1](dy), (True, True)
+
+    @jax.custom_vjp
+    def conv(x, kernel):
+        return forward(x, kernel)
+
+    conv.defvjp(lambda x, kernel: (forward(x, kernel), (x, kernel)), lambda res, dy: backward(*res, dy))
+    return conv
+
+
 class PatchConv(nn.Module):
     """A k×k convolution with stride s, written as strided slices and one matmul.
 
@@ -41,7 +100,9 @@ class PatchConv(nn.Module):
     where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `impl`
     (`NetworkConfig.conv_impl`) picks how the same convolution is computed, same parameters: "patch" concatenates
     the k² strided slices into patches [B, H', W', k²C] and multiplies them by the kernel once; "taps" multiplies
-    each slice by its kernel tap and sums, with no patch tensor; "native" is XLA's convolution op (cuDNN on a GPU).
+    each slice by its kernel tap and sums, with no patch tensor; "native" is XLA's convolution op (cuDNN on a GPU),
+    which under the seeds' `vmap` becomes a grouped convolution; "stacked" is XLA's convolution with the vmapped
+    seeds stacked along the channels (`seed_stacked_conv`).
     It computes in the dtype of `x` (float32 parameters cast to it):
     with bfloat16 input its patches, matmul and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
@@ -50,7 +111,7 @@ class PatchConv(nn.Module):
     kernel: int = 3
     stride: int = 2
     padding: str = "SAME"
-    impl: str = "patch"  # NetworkConfig.conv_impl: "patch", "taps" or "native"
+    impl: str = "patch"  # NetworkConfig.conv_impl: "patch", "taps", "native" or "stacked"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -66,8 +127,9 @@ class PatchConv(nn.Module):
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features)).astype(x.dtype)
         bias = self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
         if self.impl == "native":  # x is padded already: a VALID convolution gives the out_h × out_w map
-            return jax.lax.conv_general_dilated(x, kernel, (s, s), "VALID",
-                                                dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
+            return _conv(x, kernel, s) + bias
+        if self.impl == "stacked":
+            return seed_stacked_conv(s)(x, kernel) + bias
         taps = [x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
                 for dy in range(k) for dx in range(k)]
         if self.impl == "taps":  # Σ over the k² taps of (strided slice) @ kernel[dy, dx]: no patch tensor

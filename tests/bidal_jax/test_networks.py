@@ -32,11 +32,11 @@ def test_patch_conv_equals_flax_conv(size, stride, padding, impl):
     np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
 
 
-@pytest.mark.parametrize("impl", ["taps", "native"])
+@pytest.mark.parametrize("impl", ["taps", "native", "stacked"])
 @pytest.mark.parametrize("strides", ["3,2,2,2", "2,2,1,1"])
 def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, impl):
-    """--conv-impl taps or native: the parameter tree (a checkpoint) is the same as patch's, and so are φ(s) and its
-    gradients."""
+    """--conv-impl taps, native or stacked: the parameter tree (a checkpoint) is the same as patch's, and so are φ(s)
+    and its gradients."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
@@ -53,6 +53,27 @@ def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, i
     np.testing.assert_allclose(native.encode(params, image, proprio), patch.encode(params, image, proprio), atol=1e-5)
     for a, b in zip(jax.tree.leaves(jax.grad(lambda p: loss(native, p))(params)),
                     jax.tree.leaves(jax.grad(lambda p: loss(patch, p))(params)), strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-4)
+
+
+def test_stacked_convs_under_the_seeds_vmap_are_the_seeds_own_encoders_and_gradients():
+    """--conv-impl stacked: under the seeds' vmap (each seed its parameters and frames) φ(s) and its gradients are
+    each seed's own, as with patch, though the seeds' convs run as one."""
+    def networks(impl):
+        config = NetworkConfig(conv_channels=4, latent_size=8, conv_impl=impl)
+        return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
+
+    patch, stacked = networks("patch"), networks("stacked")
+    params = jax.vmap(lambda key: patch.init(key)["encoder"])(jax.random.split(jax.random.PRNGKey(0), 3))
+    images = jax.random.randint(jax.random.PRNGKey(1), (3, 5, 42, 42, 1), 0, 256).astype(np.uint8)
+    proprio = jax.random.normal(jax.random.PRNGKey(2), (3, 5, 4))
+
+    def grads(nets):
+        return jax.vmap(jax.grad(lambda p, i, q: (nets.encode(p, i, q) ** 2).sum()))(params, images, proprio)
+
+    np.testing.assert_allclose(jax.vmap(stacked.encode)(params, images, proprio),
+                               jax.vmap(patch.encode)(params, images, proprio), atol=1e-5)
+    for a, b in zip(jax.tree.leaves(grads(stacked)), jax.tree.leaves(grads(patch)), strict=True):
         np.testing.assert_allclose(a, b, atol=1e-4)
 
 
