@@ -3,10 +3,13 @@ passes and, on a GPU, LLVM/PTX code generation), for the main command's program 
 
     python -m experiments.bench.compile_time --out compile.json
     TF_CPP_MIN_LOG_LEVEL=0 TF_CPP_VMODULE=gpu_compiler=1,nvptx_compiler=1 python -m experiments.bench.compile_time
+    python -m experiments.bench.compile_time --programs main --xla-option xla_backend_optimization_level=0 --epoch
 
 XLA's own phase timers (HLO passes, LLVM IR, PTX to SASS) print to stderr with the second form (on a CPU:
 `TF_CPP_VMODULE=cpu_compiler=1`). JAX's persistent compilation cache is not used here: every figure is a cold XLA
-compile in this process, of the programs as a run lowers them (`loop.short_source_locations`).
+compile in this process, of the programs as a run lowers them (`loop.short_source_locations`). `--xla-option
+NAME=VALUE` passes XLA options to the epoch's compile (`Lowered.compile(compiler_options=...)`), and `--epoch` also
+times one epoch of the compiled program, since an option that compiles sooner may run slower.
 """
 
 from __future__ import annotations
@@ -20,11 +23,24 @@ import jax
 from bidal_jax.run import loop
 from experiments.bench.programs import seeded_program
 
-PROGRAMS = (("ur5_reach", "multimodal_bidal", 1), ("nicol_slide", "multimodal_bidal", 5))
+PROGRAMS = {"main": ("ur5_reach", "multimodal_bidal", 1), "nicol": ("nicol_slide", "multimodal_bidal", 5)}
 
 
-def stages(name: str, agent: str, seeds: int, backend: str) -> dict[str, float]:
-    """Seconds to build the env and the program, then to trace, lower and compile its init and epoch."""
+def xla_option(text: str) -> tuple[str, bool | int | float | str]:
+    """"NAME=VALUE" -> (NAME, VALUE as a bool, int or float where it reads as one, else the text)."""
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"{text!r}: NAME=VALUE is allowed, e.g. xla_backend_optimization_level=1")
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        return name, value
+
+
+def stages(name: str, agent: str, seeds: int, backend: str, options: dict | None = None,
+           epoch_too: bool = False) -> dict[str, float]:
+    """Seconds to build the env and the program, then to trace, lower and compile its init and epoch (the epoch
+    with the XLA `options`), and with `epoch_too` to run one epoch of it."""
     times = {}
     start = time.perf_counter()
     init, epoch, *_ = seeded_program(name, agent, seeds, backend=backend)
@@ -38,9 +54,13 @@ def stages(name: str, agent: str, seeds: int, backend: str) -> dict[str, float]:
         t1 = time.perf_counter()
         lowered = traced.lower()
         t2 = time.perf_counter()
-        lowered.compile()
+        compiled = lowered.compile(compiler_options=(options or None) if label == "epoch" else None)
         t3 = time.perf_counter()
         times.update({f"{label}_trace": t1 - t0, f"{label}_lower": t2 - t1, f"{label}_xla_compile": t3 - t2})
+    if epoch_too:
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(init(keys))[1])
+        times["epoch_run"] = time.perf_counter() - t0
     times["total"] = time.perf_counter() - start
     return times
 
@@ -49,12 +69,17 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--backend", default="jax", choices=["jax", "warp"])
     parser.add_argument("--out", default=None)
+    parser.add_argument("--programs", nargs="+", default=list(PROGRAMS), choices=list(PROGRAMS))
+    parser.add_argument("--xla-option", type=xla_option, action="append", default=[],
+                        help="NAME=VALUE: an XLA option for the epoch's compile (repeatable)")
+    parser.add_argument("--epoch", action="store_true", help="also run one epoch of the compiled program")
     args = parser.parse_args(argv)
     loop.short_source_locations()
     results = []
-    for name, agent, seeds in PROGRAMS:
+    options = dict(args.xla_option)
+    for name, agent, seeds in (PROGRAMS[p] for p in args.programs):
         row = {"env": name, "agent": agent, "seeds": seeds, "backend": args.backend, "device": str(jax.devices()[0]),
-               **stages(name, agent, seeds, args.backend)}
+               "xla_options": options, **stages(name, agent, seeds, args.backend, options, args.epoch)}
         print(json.dumps(row), flush=True)
         results.append(row)
     if args.out:
