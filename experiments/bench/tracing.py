@@ -84,23 +84,26 @@ def op_names(hlo_text: str) -> dict[str, str]:
     return {kernel_name(name): op for name in operands for op in [resolve(name)] if op is not None}
 
 
-def component(op_name: str) -> str:
+def component(op_name: str, depth: int = 0) -> str:
     """The part of a training epoch an operation belongs to, by the scopes in its `op_name`
-    ("jit(epoch)/.../update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/..." -> "update: Encoder backward")."""
+    ("jit(epoch)/.../update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/PatchConv_1/..." -> "update: Encoder
+    backward"); with `depth` d, a network's part names its first d submodules too ("update: Encoder/VisionBranch_0/
+    PatchConv_1 backward" for d = 2)."""
     scopes = [re.sub(r"^(?:\w+\()+|\)+$", "", part) for part in op_name.split("/")]  # transforms stripped
     if train.EVALUATION_SCOPE in scopes:
         return "evaluation"
     if train.UPDATE_SCOPE in scopes:
         part = next((label for scope, label in UPDATE_PARTS if scope in scopes), None)
-        network = next((scope for scope in scopes if scope in NETWORKS), None)
-        if part is None and network is not None:
-            part = f"{network} {'backward' if 'transpose(' in op_name else 'forward'}"
+        at = next((i for i, scope in enumerate(scopes) if scope in NETWORKS), None)
+        if part is None and at is not None:
+            module = "/".join(scopes[at : at + 1 + depth])
+            part = f"{module} {'backward' if 'transpose(' in op_name else 'forward'}"
         return f"update: {part or 'losses and the rest'}"
     return next((label for scope, label in EPOCH_PARTS if scope in scopes), "other")
 
 
-def by_component(events: list[dict], names: dict[str, str]) -> list[dict]:
-    """A trace's operations per `component` of their op_name in `names` (`op_names`): rows of {component,
+def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> list[dict]:
+    """A trace's operations per `component(..., depth)` of their op_name in `names` (`op_names`): rows of {component,
     seconds, events, top: its 2 largest kernels as (name, share of its seconds)}, largest first. On a GPU the
     operations are the device's events, and a kernel found by neither its name nor its "hlo_op" argument (a
     library's kernel, a copy) is "unattributed"; on a CPU they are the host's events of an HLO instruction (an
@@ -119,7 +122,7 @@ def by_component(events: list[dict], names: dict[str, str]) -> list[dict]:
     kernels = collections.defaultdict(collections.Counter)
     for e in filter(counted, events):
         op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
-        part = component(op) if op else "unattributed"
+        part = component(op, depth) if op else "unattributed"
         seconds[part] += e.get("dur", 0) / 1e6
         count[part] += 1
         kernels[part][e["name"]] += e.get("dur", 0) / 1e6
@@ -164,9 +167,10 @@ def profile_options(events: int = GPU_EVENTS) -> jax.profiler.ProfileOptions:
     return options
 
 
-def traced(fn: Callable[[], Any], out: str, top: int = 10, hlo_text: str = "") -> tuple[float, list[dict], list[dict]]:
+def traced(fn: Callable[[], Any], out: str, top: int = 10, hlo_text: str = "",
+           depth: int = 0) -> tuple[float, list[dict], list[dict]]:
     """(wall seconds of `fn()` until its result is ready, `summarise(..., top)` of its trace written to `out`,
-    `by_component` of its device events given the HLO text of the program `fn` runs, which then goes to
+    `by_component(..., depth)` of its device events given the HLO text of the program `fn` runs, which then goes to
     `out`/program.hlo.txt; [] without)."""
     with jax.profiler.trace(out, create_perfetto_trace=True, profiler_options=profile_options()):
         start = time.perf_counter()
@@ -180,7 +184,7 @@ def traced(fn: Callable[[], Any], out: str, top: int = 10, hlo_text: str = "") -
         return wall, summarise(events, top), []
     with open(os.path.join(out, "program.hlo.txt"), "w") as f:  # what the kernels' names refer to
         f.write(hlo_text)
-    return wall, summarise(events, top), by_component(events, op_names(hlo_text))
+    return wall, summarise(events, top), by_component(events, op_names(hlo_text), depth)
 
 
 def print_components(rows: list[dict], wall: float, unit: str = "s") -> None:

@@ -66,8 +66,10 @@ def per_update_cost(compiled) -> tuple[float, float]:
     return cost.get("flops", float("nan")), cost.get("bytes accessed", float("nan"))
 
 
-def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, variant: str, profile: str) -> dict:
-    """Compile and time one variant (`update_program`): a row of the table, with the profile's summary rows."""
+def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, variant: str, profile: str,
+            depth: int = 0) -> dict:
+    """Compile and time one variant (`update_program`): a row of the table, with the profile's summary rows (its
+    parts to the networks' submodules `depth` deep)."""
     compiled, ts, keys, compile_s = update_program(name, agent, seeds, updates, variant)
     flops, bytes_accessed = per_update_cost(compiled)
     holder = {"state": ts}  # each call donates the state it is given and returns the next
@@ -81,7 +83,7 @@ def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, varia
            "ms": 1e3 * seconds / updates, "trace": [], "parts": []}
     if profile:
         out = os.path.join(profile, variant.replace("/", "_").replace(",", "_"))
-        _, row["trace"], row["parts"] = traced(call, out, hlo_text=compiled.as_text())
+        _, row["trace"], row["parts"] = traced(call, out, hlo_text=compiled.as_text(), depth=depth)
     return row
 
 
@@ -101,13 +103,16 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variant", nargs="+", default=["preset"],
                         help="k=v,net.k=v overrides of the preset, one per variant (as experiments.bench.sweep's)")
     parser.add_argument("--profile", default="", help="trace one warm call per variant into this folder")
+    parser.add_argument("--depth", type=int, default=0, help="with --profile: the parts name the networks' "
+                        "submodules this deep (2: the encoder's conv layers, Encoder/VisionBranch_0/PatchConv_1)")
     args = parser.parse_args(argv)
-    bad = [f"--{field} {getattr(args, field)}" for field in ("updates", "repeats") if getattr(args, field) < 1]
+    bad = [f"--{field} {getattr(args, field)}: a positive integer is allowed" for field in ("updates", "repeats")
+           if getattr(args, field) < 1] + [f"--depth {args.depth}: a number >= 0 is allowed"] * (args.depth < 0)
     if bad:
-        raise SystemExit(f"error: {bad[0]}: a positive integer is allowed")
+        raise SystemExit(f"error: {bad[0]}")
     try:
         validate.check_field("seeds", args.seeds)
-        rows = [measure(args.env, args.agent, args.seeds, args.updates, args.repeats, v, args.profile)
+        rows = [measure(args.env, args.agent, args.seeds, args.updates, args.repeats, v, args.profile, args.depth)
                 for v in args.variant]
     except ConfigError as err:
         raise SystemExit(f"error: {err}") from err

@@ -78,6 +78,12 @@ def test_each_operation_counts_for_the_part_its_scopes_name(op_name, part):
     assert tracing.component(op_name) == part
 
 
+def test_a_depth_names_the_networks_submodules():
+    op = "jit(epoch)/update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/PatchConv_1/dot_general"
+    assert tracing.component(op, depth=2) == "update: Encoder/VisionBranch_0/PatchConv_1 backward"
+    assert tracing.component("jit(epoch)/update/optimiser/Encoder/add", depth=2) == "update: optimiser (Adam)"
+
+
 def test_device_events_add_up_by_part_and_a_library_kernel_by_its_hlo_op():
     names = tracing.op_names(HLO)
     events = [

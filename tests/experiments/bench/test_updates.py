@@ -37,7 +37,7 @@ def test_kernels_per_update_reads_the_busiest_device_stream():
 
 
 @pytest.mark.parametrize("args, message", [(["--updates", "0"], "--updates 0"), (["--repeats", "-1"], "--repeats -1"),
-                                           (["--seeds", "0"], "seeds")])
+                                           (["--seeds", "0"], "seeds"), (["--depth", "-1"], "--depth -1")])
 def test_bad_counts_stop_with_one_line(args, message, capsys):
     with pytest.raises(SystemExit) as stop:
         bench_updates.main(args)
