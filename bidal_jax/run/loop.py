@@ -297,7 +297,9 @@ def short_source_locations() -> None:
     """Programs lowered with one source location per operation (its own line) instead of JAX's default, the whole
     Python stack (`jax_include_full_tracebacks_in_locations`); a user's $JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS
     wins. Only the programs' metadata shrinks (what they compute is the same): the main command's compiled epoch
-    is 4.8 MB of HLO text instead of 6.5 MB, and XLA:CPU compiles it 1-2 s sooner on a 2-core CPU. Call it
+    is 4.8 MB of HLO text instead of 6.5 MB, and XLA:CPU compiles it 1-2 s sooner on a 2-core CPU. The ops' names
+    shrink too, to the innermost `jit` and the op ("vmap(jit(step))/mul"), without the `jax.named_scope`s by which
+    a profile attributes kernels (experiments/bench/tracing.py), so the profiling benches do not call it. Call it
     before anything is lowered."""
     if "JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS" not in os.environ:
         jax.config.update("jax_include_full_tracebacks_in_locations", False)

@@ -10,7 +10,8 @@ Given the compiled program's HLO text, `traced` also attributes each device even
 (`component`): XLA names a kernel after its fused instruction, whose metadata keeps the `jax.named_scope`s it was
 traced under (`bidal_jax.train.UPDATE_SCOPE` and the others, the env's physics and camera, the Flax modules of
 the networks, `transpose(...)` for a backward pass). A fusion carries the scopes of one of the operations it
-fused, so a kernel that fuses the end of one part with the start of the next counts for one of them.
+fused, so a kernel that fuses the end of one part with the start of the next counts for one of them. A program
+lowered after `loop.short_source_locations` (as a run's are) has lost those scopes: profile a bench's program.
 """
 
 from __future__ import annotations
