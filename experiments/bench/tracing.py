@@ -109,55 +109,56 @@ def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> l
     operations are the device's events, and a kernel found by neither its name nor its "hlo_op" argument (a
     library's kernel, a copy) is "unattributed"; on a CPU they are the host's events of an HLO instruction (an
     "hlo_op" argument), less control flow (a loop's event spans its body's)."""
-    devices = {e["pid"] for e in events
-               if e.get("ph") == "M" and e.get("name") == "process_name" and e["args"]["name"].startswith("/device:")}
+    devices = {pid for (pid, tid), name in _names(events).items() if tid is None and name.startswith("/device:")}
 
     def counted(e: dict) -> bool:
-        if e.get("ph") != "X":
-            return False
         if devices:
             return e["pid"] in devices
         return not e.get("args", {}).get("hlo_op", "while").startswith(("while", "conditional", "call"))
 
-    seconds, count = collections.Counter(), collections.Counter()
-    kernels = collections.defaultdict(collections.Counter)
-    for e in filter(counted, events):
+    def part(e: dict) -> str:
         op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
-        part = component(op, depth) if op else "unattributed"
-        seconds[part] += e.get("dur", 0) / 1e6
-        count[part] += 1
-        kernels[part][e["name"]] += e.get("dur", 0) / 1e6
-    return [{"component": part, "seconds": s, "events": count[part],
-             "top": [(name, t / max(s, 1e-12)) for name, t in kernels[part].most_common(2)]}
-            for part, s in seconds.most_common()]
+        return component(op, depth) if op else "unattributed"
+
+    return [{"component": key, "seconds": s, "events": n, "top": [(name, t / max(s, 1e-12)) for name, t in
+                                                                 by_name.most_common(2)]}
+            for key, s, n, by_name in _tally(part, filter(counted, _complete(events)))]
+
+
+def _names(events: list[dict]) -> dict[tuple, str]:
+    """The names a trace's metadata gives its processes, {(pid, None): name}, and threads, {(pid, tid): name}."""
+    return {(e["pid"], e["tid"] if e["name"] == "thread_name" else None): e["args"]["name"] for e in events
+            if e.get("ph") == "M" and e.get("name") in ("process_name", "thread_name")}
+
+
+def _complete(events: list[dict]) -> list[dict]:
+    """A trace's complete ("X") events: those with a duration."""
+    return [e for e in events if e.get("ph") == "X"]
+
+
+def _tally(key: Callable[[dict], Any], events: Any) -> list[tuple[Any, float, int, collections.Counter]]:
+    """(key, the seconds its events add up to, their count, their seconds by event name) per `key(event)` of
+    `events`, largest total first."""
+    seconds, count = collections.Counter(), collections.Counter()
+    by_name = collections.defaultdict(collections.Counter)
+    for e in events:
+        k = key(e)
+        seconds[k] += e.get("dur", 0) / 1e6
+        count[k] += 1
+        by_name[k][e["name"]] += e.get("dur", 0) / 1e6
+    return [(k, s, count[k], by_name[k]) for k, s in seconds.most_common()]
 
 
 def summarise(events: list[dict], top: int = 10) -> list[dict]:
     """Per (process, thread) of a Chrome/Perfetto trace's complete ("X") events: the seconds they
     add up to, their count and the `top` names by seconds; largest total first."""
-    names = {
-        (e["pid"], None): e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"
-    }
-    names.update(
-        {
-            (e["pid"], e["tid"]): e["args"]["name"]
-            for e in events
-            if e.get("ph") == "M" and e.get("name") == "thread_name"
-        }
-    )
-    seconds, count = collections.Counter(), collections.Counter()
-    by_name = collections.defaultdict(collections.Counter)
-    for e in events:
-        if e.get("ph") != "X":
-            continue
-        where = (names.get((e["pid"], None), str(e["pid"])), names.get((e["pid"], e["tid"]), str(e["tid"])))
-        seconds[where] += e.get("dur", 0) / 1e6
-        count[where] += 1
-        by_name[where][e["name"]] += e.get("dur", 0) / 1e6
-    return [
-        {"process": p, "thread": t, "seconds": s, "events": count[(p, t)], "top": by_name[(p, t)].most_common(top)}
-        for (p, t), s in seconds.most_common()
-    ]
+    names = _names(events)
+
+    def where(e: dict) -> tuple[str, str]:
+        return names.get((e["pid"], None), str(e["pid"])), names.get((e["pid"], e["tid"]), str(e["tid"]))
+
+    return [{"process": p, "thread": t, "seconds": s, "events": n, "top": by_name.most_common(top)}
+            for (p, t), s, n, by_name in _tally(where, _complete(events))]
 
 
 def profile_options(events: int = GPU_EVENTS) -> jax.profiler.ProfileOptions:

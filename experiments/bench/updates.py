@@ -107,7 +107,9 @@ def main(argv: list[str] | None = None) -> None:
                         "submodules this deep (2: the encoder's conv layers, Encoder/VisionBranch_0/PatchConv_1)")
     args = parser.parse_args(argv)
     bad = [f"--{field} {getattr(args, field)}: a positive integer is allowed" for field in ("updates", "repeats")
-           if getattr(args, field) < 1] + [f"--depth {args.depth}: a number >= 0 is allowed"] * (args.depth < 0)
+           if getattr(args, field) < 1]
+    if args.depth < 0:
+        bad.append(f"--depth {args.depth}: a number >= 0 is allowed")
     if bad:
         raise SystemExit(f"error: {bad[0]}")
     try:
