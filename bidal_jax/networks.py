@@ -23,6 +23,7 @@ import chex
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def parse_strides(text: str) -> tuple[int, ...]:
@@ -53,6 +54,38 @@ def _stacked_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     diagonal = jnp.einsum("st,sijcf->ijsctf", jnp.eye(models, dtype=kernel.dtype), kernel)
     y = _conv(stacked, diagonal.reshape(k, k, models * channels, models * features), stride)
     return y.reshape(*y.shape[:3], models, features).transpose(3, 0, 1, 2, 4)
+
+
+def _width_bands(kernel: jax.Array, stride: int, width: int) -> jax.Array:
+    """The convolution along one row as matrices, one per kernel row dy: [k, width·C, out_w·F] whose entry
+    ((x, c), (o, f)) is kernel[dy, x − stride·o, c, f] for 0 <= x − stride·o < k, else 0."""
+    k, _, channels, features = kernel.shape
+    out_w = (width - k) // stride + 1
+    taps = np.arange(width)[:, None, None] == stride * np.arange(out_w)[None, :, None] + np.arange(k)
+    bands = jnp.einsum("xod,ydcf->yxcof", taps.astype(kernel.dtype), kernel)
+    return bands.reshape(k, width * channels, out_w * features)
+
+
+def _banded_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
+    """`_conv` as one dense matmul: the rows are cut into G groups of `stride` (a reshape), each group is
+    multiplied by the band matrices of the ⌈k/stride⌉ places it takes in an output row's window (`_width_bands`,
+    side by side: one matmul [B·G, stride·width·C] @ [stride·width·C, ⌈k/stride⌉·out_w·F]), and output row y is
+    Σ_g (product of group y+g, place g). No transpose and no copy of taps: the duplication and the zeros of the
+    band cost arithmetic instead (about 6× that of the convolution for the vision branch), which a GPU's matrix
+    units have to spare and its memory has not."""
+    batch, height, width, channels = x.shape
+    k, features = kernel.shape[0], kernel.shape[-1]
+    out_h, out_w = (height - k) // stride + 1, (width - k) // stride + 1
+    places = -(-k // stride)
+    groups = out_h + places - 1
+    used_rows = (out_h - 1) * stride + k
+    x = jnp.pad(x[:, :used_rows], ((0, 0), (0, stride * groups - used_rows), (0, 0), (0, 0)))
+    bands = jnp.pad(_width_bands(kernel, stride, width), ((0, stride * places - k), (0, 0), (0, 0)))
+    bands = bands.reshape(places, stride * width * channels, out_w * features).transpose(1, 0, 2)
+    products = x.reshape(batch, groups, -1) @ bands.reshape(stride * width * channels, -1)
+    products = products.reshape(batch, groups, places, out_w * features)
+    y = sum(products[:, g : g + out_h, g] for g in range(places))
+    return y.reshape(batch, out_h, out_w, features)
 
 
 def _batched(axis_size: int, in_batched: list, *args: jax.Array) -> list[jax.Array]:
@@ -102,7 +135,8 @@ class PatchConv(nn.Module):
     the k² strided slices into patches [B, H', W', k²C] and multiplies them by the kernel once; "taps" multiplies
     each slice by its kernel tap and sums, with no patch tensor; "native" is XLA's convolution op (cuDNN on a GPU),
     which under the seeds' `vmap` becomes a grouped convolution; "stacked" is XLA's convolution with the vmapped
-    seeds stacked along the channels (`seed_stacked_conv`).
+    seeds stacked along the channels (`seed_stacked_conv`); "banded" multiplies groups of whole rows by band
+    matrices built from the kernel (`_banded_conv`).
     It computes in the dtype of `x` (float32 parameters cast to it):
     with bfloat16 input its patches, matmul and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
@@ -111,7 +145,7 @@ class PatchConv(nn.Module):
     kernel: int = 3
     stride: int = 2
     padding: str = "SAME"
-    impl: str = "patch"  # NetworkConfig.conv_impl: "patch", "taps", "native" or "stacked"
+    impl: str = "patch"  # NetworkConfig.conv_impl: "patch", "taps", "native", "stacked" or "banded"
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -130,6 +164,8 @@ class PatchConv(nn.Module):
             return _conv(x, kernel, s) + bias
         if self.impl == "stacked":
             return seed_stacked_conv(s)(x, kernel) + bias
+        if self.impl == "banded":
+            return _banded_conv(x, kernel, s) + bias
         taps = [x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
                 for dy in range(k) for dx in range(k)]
         if self.impl == "taps":  # Σ over the k² taps of (strided slice) @ kernel[dy, dx]: no patch tensor

@@ -22,7 +22,8 @@ def test_every_agent_builds_the_networks_it_needs(agent):
 
 @pytest.mark.parametrize("impl", CONV_IMPLS)
 @pytest.mark.parametrize(
-    "size, stride, padding", [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME"), (10, 1, "SAME")]
+    "size, stride, padding",
+    [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME"), (10, 1, "SAME"), (11, 3, "VALID")],
 )
 def test_patch_conv_equals_flax_conv(size, stride, padding, impl):
     x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
@@ -32,11 +33,11 @@ def test_patch_conv_equals_flax_conv(size, stride, padding, impl):
     np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
 
 
-@pytest.mark.parametrize("impl", ["taps", "native", "stacked"])
+@pytest.mark.parametrize("impl", ["taps", "native", "stacked", "banded"])
 @pytest.mark.parametrize("strides", ["3,2,2,2", "2,2,1,1"])
 def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, impl):
-    """--conv-impl taps, native or stacked: the parameter tree (a checkpoint) is the same as patch's, and so are φ(s)
-    and its gradients."""
+    """--conv-impl taps, native, stacked or banded: the parameter tree (a checkpoint) is the same as patch's, and so
+    are φ(s) and its gradients."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
@@ -56,14 +57,15 @@ def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, i
         np.testing.assert_allclose(a, b, atol=1e-4)
 
 
-def test_stacked_convs_under_the_seeds_vmap_are_the_seeds_own_encoders_and_gradients():
-    """--conv-impl stacked: under the seeds' vmap (each seed its parameters and frames) φ(s) and its gradients are
-    each seed's own, as with patch, though the seeds' convs run as one."""
+@pytest.mark.parametrize("impl", ["stacked", "banded"])
+def test_convs_under_the_seeds_vmap_are_the_seeds_own_encoders_and_gradients(impl):
+    """--conv-impl stacked or banded: under the seeds' vmap (each seed its parameters and frames) φ(s) and its
+    gradients are each seed's own, as with patch, though stacked runs the seeds' convs as one."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
 
-    patch, stacked = networks("patch"), networks("stacked")
+    patch, stacked = networks("patch"), networks(impl)
     params = jax.vmap(lambda key: patch.init(key)["encoder"])(jax.random.split(jax.random.PRNGKey(0), 3))
     images = jax.random.randint(jax.random.PRNGKey(1), (3, 5, 42, 42, 1), 0, 256).astype(np.uint8)
     proprio = jax.random.normal(jax.random.PRNGKey(2), (3, 5, 4))
