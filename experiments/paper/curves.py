@@ -78,13 +78,14 @@ PROG = "python -m experiments.paper.curves"
 STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on one GPU, per
-# task and agent kind. NICOL image (any agent that sees images): multimodal_bidal with today's preset (taps convs in
-# bfloat16) on one H100, from results/scaling: nicol_slide `experiments.bench.sweep` from a cold cache
+# task and agent kind. NICOL image (any agent that sees images): multimodal_bidal on one H100, from results/scaling:
+# nicol_lift with today's preset (banded convs in bfloat16), `experiments.bench.epoch_profile`
+# (profile-nicol_lift-multimodal_bidal-banded.txt: the warm epoch; compile: the first epoch less it); nicol_slide
+# with the preset before it (taps convs in bfloat16), `experiments.bench.sweep` from a cold cache
 # (nicol_slide-multimodal_bidal-cold.jsonl: the mean step of `process_seconds` per epoch; compile: the first
-# epoch's `variant_seconds` less one epoch), nicol_lift `experiments.bench.epoch_profile`
-# (epoch-nicol_lift-taps-bf16.txt: the warm epoch; compile: the first epoch less it); the visual agents' updates
-# take 0.7 ms more (results/scaling/updates-nicol_lift-*.txt), about 1.2 s an epoch more on nicol_slide and 4.6 s
-# on nicol_lift. NICOL proprio: the grid's own H100 runs, results/curves/<task>/proprio_baseline/metrics.csv
+# epoch's `variant_seconds` less one epoch), an over-estimate: by the updates bench, banded convs take its 1,600
+# updates 2.8 s less (results/scaling/updates-banded.txt), where the visual agents' updates take 0.06 ms more than
+# multimodal_bidal's. NICOL proprio: the grid's own H100 runs, results/curves/<task>/proprio_baseline/metrics.csv
 # (seconds per epoch: `wall_time`'s mean step per epoch; compile: the first epoch's `wall_time_with_compile` less
 # its `wall_time`). Reaching: their config.json names no machine and their metrics.csv has no compile column; their
 # slowest agent of each kind, with 60 s of compiling assumed.
@@ -92,7 +93,7 @@ SECONDS = {
     "planar_reach": {"image": (10.2, 60.0), "proprio": (0.9, 60.0)},
     "ur5_reach": {"image": (6.7, 60.0), "proprio": (0.6, 60.0)},
     "nicol_slide": {"image": (13.2, 164.3), "proprio": (10.7, 128.0)},
-    "nicol_lift": {"image": (35.9, 147.7), "proprio": (12.4, 148.0)},
+    "nicol_lift": {"image": (24.7, 157.0), "proprio": (12.4, 148.0)},
 }
 
 
