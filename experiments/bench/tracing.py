@@ -105,10 +105,12 @@ def component(op_name: str, depth: int = 0) -> str:
 
 def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> list[dict]:
     """A trace's operations per `component(..., depth)` of their op_name in `names` (`op_names`): rows of {component,
-    seconds, events, top: its 2 largest kernels as (name, share of its seconds)}, largest first. On a GPU the
-    operations are the device's events, and a kernel found by neither its name nor its "hlo_op" argument (a
-    library's kernel, a copy) is "unattributed"; on a CPU they are the host's events of an HLO instruction (an
-    "hlo_op" argument), less control flow (a loop's event spans its body's)."""
+    seconds, events, inherited, top: its 2 largest kernels as (name, share of its seconds)}, largest first. On a
+    GPU the operations are the device's events. A kernel found by neither its name nor its "hlo_op" argument (a
+    library's kernel inside a CUDA graph, such as cuBLAS's `nvjet_*` matmuls, which carry no HLO name there) counts
+    for the part of the last attributed kernel before it on its stream (`inherited` counts those); a copy or
+    memset so found, or a kernel with none before it, is "unattributed". On a CPU the operations are the host's
+    events of an HLO instruction (an "hlo_op" argument), less control flow (a loop's event spans its body's)."""
     devices = {pid for (pid, tid), name in _names(events).items() if tid is None and name.startswith("/device:")}
 
     def counted(e: dict) -> bool:
@@ -116,13 +118,23 @@ def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> l
             return e["pid"] in devices
         return not e.get("args", {}).get("hlo_op", "while").startswith(("while", "conditional", "call"))
 
-    def part(e: dict) -> str:
+    def own(e: dict) -> str | None:
         op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
-        return component(op, depth) if op else "unattributed"
+        return component(op, depth) if op else None
 
-    return [{"component": key, "seconds": s, "events": n, "top": [(name, t / max(s, 1e-12)) for name, t in
-                                                                 by_name.most_common(2)]}
-            for key, s, n, by_name in _tally(part, filter(counted, _complete(events)))]
+    ordered = sorted(filter(counted, _complete(events)), key=lambda e: (e["pid"], e.get("tid"), e.get("ts", 0)))
+    parts, before, inherited = {}, {}, collections.Counter()
+    for e in ordered:
+        stream, part = (e["pid"], e.get("tid")), own(e)
+        if part is None and stream in before and not e["name"].startswith(("Memcpy", "Memset")):
+            part = before[stream]
+            inherited[part] += 1
+        if part is not None:
+            before[stream] = part
+        parts[id(e)] = part or "unattributed"
+    return [{"component": key, "seconds": s, "events": n, "inherited": inherited[key],
+             "top": [(name, t / max(s, 1e-12)) for name, t in by_name.most_common(2)]}
+            for key, s, n, by_name in _tally(lambda e: parts[id(e)], ordered)]
 
 
 def _names(events: list[dict]) -> dict[tuple, str]:
@@ -199,8 +211,9 @@ def print_components(rows: list[dict], wall: float, unit: str = "s") -> None:
     print("| --- | --- | --- | --- | --- |")
     for r in rows:
         largest = ", ".join(f"{name[:48]} {share:.0%}" for name, share in r["top"])
+        events = f"{r['events']:,.0f}" + (f" ({r['inherited']:,.0f} by the kernel before)" if r["inherited"] else "")
         print(f"| {r['component']} | {r['seconds']:.3f} | {r['seconds'] / max(total, 1e-12):.1%} "
-              f"| {r['events']:,.0f} | {largest} |")
+              f"| {events} | {largest} |")
 
 
 def print_summary(rows: list[dict], streams: int) -> None:

@@ -130,8 +130,8 @@ def main(argv: list[str] | None = None) -> None:
               f"| {rows[0]['ms'] / row['ms']:.2f}× | {'–' if kernels is None else f'{kernels:.0f}'} |")
     for row in filter(lambda row: row["parts"], rows):
         print(f"\n## {row['variant']}")
-        per_update = [{**r, "seconds": 1e3 * r["seconds"] / args.updates, "events": r["events"] / args.updates}
-                      for r in row["parts"]]
+        per_update = [{**r, "seconds": 1e3 * r["seconds"] / args.updates,
+                       **{key: r[key] / args.updates for key in ("events", "inherited")}} for r in row["parts"]]
         print_components(per_update, row["ms"], "ms per update")
         print_summary([r for r in row["trace"] if r["process"].startswith("/device:")], 2)
 

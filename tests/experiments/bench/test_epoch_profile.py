@@ -104,6 +104,24 @@ def test_device_events_add_up_by_part_and_a_library_kernel_by_its_hlo_op():
     assert rows["unattributed"]["seconds"] == pytest.approx(5e-6)
 
 
+def test_a_library_kernel_without_a_name_counts_for_the_kernel_before_it_on_its_stream():
+    """cuBLAS's kernels in a CUDA graph carry no HLO name: such a kernel counts for the part of the kernel launched
+    before it on its stream; a copy, or a kernel first on its stream, stays unattributed."""
+    names = tracing.op_names(HLO)
+    events = [
+        {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+        {"ph": "X", "pid": 1, "tid": 8, "ts": 0.0, "name": "nvjet_sm90_tst_64x256", "dur": 7.0},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 3.0, "name": "nvjet_sm90_tst_160x128", "dur": 2.0},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 1.0, "name": "gemm_fusion_dot_84", "dur": 2.0},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 5.0, "name": "MemcpyD2D", "dur": 5.0},
+        {"ph": "X", "pid": 1, "tid": 7, "ts": 10.0, "name": "nvjet_sm90_tst_160x128", "dur": 1.0},
+    ]
+    rows = {r["component"]: r for r in tracing.by_component(events, names)}
+    assert rows["update: Encoder backward"]["events"] == 3 and rows["update: Encoder backward"]["inherited"] == 2
+    assert rows["update: Encoder backward"]["seconds"] == pytest.approx(5e-6)
+    assert rows["unattributed"]["events"] == 2 and rows["unattributed"]["seconds"] == pytest.approx(12e-6)
+
+
 def test_on_a_cpu_host_operations_count_less_control_flow():
     names = {"add_fusion_1": "jit(epoch)/update/optimiser/add", "while_3": "jit(epoch)/update/while"}
     events = [
