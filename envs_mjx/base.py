@@ -193,7 +193,7 @@ class Env(abc.ABC):
         self.mj_model = mj_model
         # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
         self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
-        self.backend = "jax"
+        self.backend, self.worlds = "jax", 1
         self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
         self.episode_length = episode_length
         self.epsilon = epsilon
@@ -215,7 +215,10 @@ class Env(abc.ABC):
         """Step this env's physics with MJX's `backend` ("jax" or "warp", MuJoCo Warp on an NVIDIA GPU).
 
         Warp keeps one contact buffer for all worlds: `worlds` is the most envs stepped at once (envs × seeds)
-        and `contacts_per_world` sizes it (contacts beyond it are dropped); `constraints_per_world` is `njmax`."""
+        and `contacts_per_world` sizes it (contacts beyond it are dropped); `constraints_per_world` is `njmax`.
+        Warp's model and buffers are not rebuilt when the env already steps on it for `worlds`."""
+        if (backend, worlds) == ("warp", worlds) == (self.backend, self.worlds):
+            return
         if backend == "jax":
             self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
             self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
@@ -236,7 +239,7 @@ class Env(abc.ABC):
             )
         else:
             raise ValueError(f"unknown physics backend {backend!r}; valid: jax, warp")
-        self.backend = backend
+        self.backend, self.worlds = backend, worlds
 
     def set_options(self, **options: float | str) -> None:
         """Override scalars of the model's physics options (`mujoco.MjOption`: timestep, iterations,

@@ -16,6 +16,7 @@ Errors are exceptions whose message is one line: `CheckpointError` (bad input, n
 from __future__ import annotations
 
 import concurrent.futures
+import importlib.util
 import json
 import os
 import sys
@@ -27,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from bidal_jax.config import Config
+from bidal_jax.config import Config, ConfigError
 from bidal_jax.run import checkpoint, exported, multihost, rundir, runfiles
 from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
@@ -68,6 +69,34 @@ def make_programs(env, config: Config) -> Programs:
     return Programs(init, epoch, seed_sharding(devices, shards), devices, shards, run.seed, run.seeds)
 
 
+def physics_engine(choice: str, devices: list) -> str:
+    """The engine of a run of `RunConfig.physics` `choice` laid out on `devices`: "warp" (MuJoCo Warp) needs one
+    NVIDIA GPU and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. Warp is not
+    spread over several devices: its custom calls have no partitioning rule. ConfigError for warp where it cannot
+    run."""
+    if choice == "jax":
+        return "jax"
+    if len(devices) != 1 or devices[0].platform != "gpu":
+        problem = f"this run lays out {len(devices)} {devices[0].platform} device(s)"
+    elif importlib.util.find_spec("warp") is None:
+        problem = "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
+    else:
+        return "warp"
+    if choice == "auto":
+        return "jax"
+    raise ConfigError(f"--physics warp needs one NVIDIA GPU and warp-lang: {problem}; allowed here: jax, auto")
+
+
+def use_physics(env, config: Config) -> str:
+    """Step `env` on the engine of `config.run.physics` (`physics_engine`), Warp's contact buffer sized for the
+    envs a run steps at once (seeds × the wider of its training and evaluation envs); the engine's name."""
+    run, train = config.run, config.train
+    devices, _ = device_layout(run.seeds, train, run.env_shards)
+    engine = physics_engine(run.physics, devices)
+    env.use_backend(engine, worlds=run.seeds * max(train.num_envs, train.eval_envs))
+    return engine
+
+
 def restore_state(env, config: Config, step: int | None = None):
     """(whole training state, its epoch) of a checkpoint of `run.run_dir` (the latest by default),
     placed on this process's devices (whatever device count wrote it); compiles nothing."""
@@ -100,9 +129,10 @@ def build(
     run, programs = config.run, built or make_programs(env, config)
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
+    engine = ", physics on MuJoCo Warp" if env.backend == "warp" else ""
     log(
         f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on "
-        f"{len(programs.devices)} device(s){shards}) ..."
+        f"{len(programs.devices)} device(s){shards}{engine}) ..."
     )
     if resume:
         state, step = _restore(run.run_dir, programs, fresh_buffer=fresh_buffer)
@@ -134,7 +164,8 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
     applies (one device, one env shard, one process, a persistent compilation cache; a line says when the traced
     program was loaded), else traced and compiled."""
     where = exported.folder()
-    if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1:
+    if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1 \
+            and env.backend == "jax":  # jax.export refuses MuJoCo Warp's custom calls
         path = os.path.join(where, f"epoch-{exported.program_key(config, env.physics_id, programs.devices)}.jax")
         try:
             compiled, loaded = exported.compile_epoch(programs.epoch, state, path, log)
@@ -185,7 +216,8 @@ def _recorded(run_dir: str, key: str, resume: bool) -> list:
 def history_record(run_dir: str, key: str, value: str, resume: bool) -> list[str]:
     """config.json's list `key`, in order: a resumed run keeps its earlier values and adds `value` if it differs
     from the last. Keys: "physics", the fingerprints (`Env.physics_id`) of the physics the run has trained on (a
-    run resumed after a model change records two); "hardware", the machines its processes ran on (`hardware`)."""
+    run resumed after a model change records two); "physics_engine", the engines it stepped on (jax, warp);
+    "hardware", the machines its processes ran on (`hardware`)."""
     earlier = _recorded(run_dir, key, resume)
     return earlier if earlier[-1:] == [value] else [*earlier, value]
 
@@ -221,6 +253,7 @@ def _train(
         cfg = {
             **config.to_dict(),
             "physics": history_record(run.run_dir, "physics", env.physics_id, resume),
+            "physics_engine": history_record(run.run_dir, "physics_engine", env.backend, resume),
             "hardware": history_record(run.run_dir, "hardware", hardware(), resume),
             "fresh_buffer_epochs": fresh_buffer_record(run.run_dir, start_epoch, resume, fresh_buffer),
         }

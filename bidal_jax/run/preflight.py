@@ -30,9 +30,9 @@ from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, res
 from bidal_jax.run import loop, multihost, rundir, runfiles, transfer, validate
 from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, read_metadata
 
-# fields whose value on resume may differ from the checkpoint's: the budget, the place, and how the convs are
-# computed (the same function and parameters, `NetworkConfig.conv_impl`)
-RESUME_MAY_CHANGE = ("epochs", "run_dir", "conv_impl")
+# fields whose value on resume may differ from the checkpoint's: the budget, the place, how the convs are
+# computed (the same function and parameters, `NetworkConfig.conv_impl`) and the physics engine (one model)
+RESUME_MAY_CHANGE = ("epochs", "run_dir", "conv_impl", "physics")
 # what a run writes into its directory; overwrite deletes nothing else
 RUN_FILES = frozenset(
     {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
@@ -99,9 +99,10 @@ def resumed_config(run_dir: str, given: dict[str, Any]) -> Config:
             if field in given and field not in RESUME_MAY_CHANGE and given[field] != value:
                 raise ConfigError(
                     f"{option(field)} {given[field]} differs from the checkpoint's {value}; "
-                    "a resumed run keeps its config (only --epochs and --conv-impl may change)"
+                    "a resumed run keeps its config (only --epochs, --conv-impl and --physics may change)"
                 )
-    run = dataclasses.replace(config.run, run_dir=run_dir, epochs=given.get("epochs", config.run.epochs))
+    run = dataclasses.replace(config.run, run_dir=run_dir, epochs=given.get("epochs", config.run.epochs),
+                              physics=given.get("physics", config.run.physics))
     if run.epochs < step:
         raise ConfigError(f"--epochs {run.epochs}: must be at least the checkpoint's epoch {step}")
     network = dataclasses.replace(config.network, conv_impl=given.get("conv_impl", config.network.conv_impl))
@@ -205,6 +206,7 @@ def prepare(
     run = config.run
     env = make_env(run.env, render=config.agent.uses_image) if env is None else env
     validate.check_env_support(config.train, env)
+    loop.use_physics(env, config)
     programs = loop.make_programs(env, config)
     state = programs.abstract_state()
     whole = rundir.tree_bytes(state)  # every seed's: what a checkpoint holds

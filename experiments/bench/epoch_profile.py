@@ -26,19 +26,20 @@ import time
 import jax
 
 import envs_mjx
-from bidal_jax.config import AGENTS, ConfigError
+from bidal_jax.config import AGENTS, PHYSICS, ConfigError
 from bidal_jax.run import validate
 from experiments.bench.programs import parse_variant, seeded_program
 from experiments.bench.tracing import print_components, print_summary, traced
 
 
 def profile_epoch(name: str, agent: str, seeds: int, out: str, top: int = 10,
-                  variant: str = "preset") -> tuple[float, list[dict], list[dict]]:
+                  variant: str = "preset", physics: str = "preset") -> tuple[float, list[dict], list[dict]]:
     """(the traced epoch's wall seconds, `summarise(..., top)` of its trace, `by_component` of it), written to
-    `out`, of the preset with `variant`'s overrides (`programs.parse_variant`); prints the compiling and the warm
-    epoch's seconds."""
+    `out`, of the preset with `variant`'s overrides (`programs.parse_variant`) on the physics engine `physics`
+    (`seeded_program`'s backend); prints the compiling and the warm epoch's seconds."""
     train, network, options = parse_variant(variant)
-    init, epoch, *_ = seeded_program(name, agent, seeds, train=train, network=network, options=options)
+    init, epoch, *_ = seeded_program(name, agent, seeds, backend=physics, train=train, network=network,
+                                     options=options)
     state = init(jax.random.split(jax.random.PRNGKey(0), seeds))
     start = time.perf_counter()
     compiled = epoch.lower(state).compile()  # its HLO text names the kernels' parts
@@ -61,6 +62,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--streams", type=int, default=6, help="streams and threads shown, largest first")
     parser.add_argument("--variant", default="preset", help="k=v,net.k=v,opt.k=v overrides of the preset "
                         "(as experiments.bench.sweep's --variant)")
+    parser.add_argument("--physics", default="preset", choices=["preset", *PHYSICS],
+                        help="the physics engine (RunConfig.physics); preset: the preset's")
     parser.add_argument("--out", default="", help="trace folder (default: runs/profile/ENV-AGENT-SEEDS)")
     args = parser.parse_args(argv)
     try:
@@ -68,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
     except ConfigError as err:
         raise SystemExit(f"error: {err}") from err
     out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
-    wall, rows, parts = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant)
+    wall, rows, parts = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant, args.physics)
     device = jax.devices()[0]
     print(
         f"{args.env} {args.agent} ({args.variant}), {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "

@@ -1,8 +1,8 @@
 """The training program of an env's preset, laid out as a run lays it out: the benchmarks' shared start.
 
 `seeded_program(env, agent, seeds, ...)` builds the env (`make_env`: on MJX's JAX or MuJoCo Warp
-physics), the preset config (`bidal_jax.config.resolve`, with any `TrainConfig` overrides), the
-device layout (`bidal_jax.run.devices.device_layout`) and the seeds' one compiled program
+physics, by default the preset's choice), the preset config (`bidal_jax.config.resolve`, with any `TrainConfig`
+overrides), the device layout (`bidal_jax.run.devices.device_layout`) and the seeds' one compiled program
 (`make_seeded`), as `python -m experiments.run` would. `parse_variant` reads the overrides of a benchmark's
 `--variant` (`a=1,net.hidden_size=256,opt.iterations=5`); `timed` times a blocking call cold and warm.
 """
@@ -21,6 +21,7 @@ import envs_mjx
 from bidal_jax.config import Config, NetworkConfig, TrainConfig, resolve
 from bidal_jax.run import validate
 from bidal_jax.run.devices import device_layout, make_seeded
+from bidal_jax.run.loop import physics_engine
 from bidal_jax.train import make_train
 
 
@@ -83,17 +84,18 @@ def parse_variant(text: str) -> tuple[dict, dict, dict]:
 
 
 def seeded_program(
-    name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1, backend: str = "jax",
+    name: str, agent: str, seeds: int, n_devices: int = 1, env_shards: int = 1, backend: str = "preset",
     train: dict | None = None, options: dict | None = None, network: dict | None = None,
 ) -> SeededProgram:
     """The training program of `seeds` vmapped seeds of the env's preset for `agent` (with the
     `TrainConfig` overrides `train` and `NetworkConfig` overrides `network`) on the first `n_devices` devices,
-    laid out as a run lays them out (`devices.device_layout`), its env's physics on `backend` with the physics
-    `options`."""
+    laid out as a run lays them out (`devices.device_layout`), its env's physics on `backend` (jax, warp, auto,
+    or the preset's `RunConfig.physics`; `loop.physics_engine`) with the physics `options`."""
     config = program_config(name, agent, train, network)
-    worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
-    env = make_env(name, backend, worlds, render=config.agent.uses_image, options=options)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
+    engine = physics_engine(config.run.physics if backend == "preset" else backend, devices)
+    worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
+    env = make_env(name, engine, worlds, render=config.agent.uses_image, options=options)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return SeededProgram(init, epoch, config.train, env, devices, shards)
 

@@ -9,12 +9,13 @@ Each `--variant` is `preset` or comma-separated `TrainConfig` overrides of the e
 `net.NAME=VALUE` `NetworkConfig` overrides (e.g. `net.hidden_size=256`) and `opt.NAME=VALUE` physics options
 (e.g. `opt.iterations=10`, `envs_mjx.base.Env.set_options`); the variants run one after another in this process
 (each builds, compiles and trains its own program). A JSON line per epoch: variant, the physics' fingerprint
-(`Env.physics_id`), epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds since the
-process started (`process_seconds`, imports and every earlier variant included) and since the variant started
+(`Env.physics_id`) and engine, epoch, mean and per-seed eval success, env steps per seed, updates per seed, seconds
+since the process started (`process_seconds`, imports and every earlier variant included) and since the variant started
 (`variant_seconds`, its build and compilation included), and the epoch's mean extrinsic and intrinsic reward per
 sampled transition; the report adds the area under the curve (mean success over the epochs run) and the mean
-|r_i| / |r_e|, what the λ sweep (`--variant intrinsic_lambda=1`) reads. `--physics warp` steps the env with MuJoCo Warp
-(envs_mjx.base.Env.use_backend). `--minutes` stops a variant when its time is up, `--until S` once its
+|r_i| / |r_e|, what the λ sweep (`--variant intrinsic_lambda=1`) reads. `--physics jax|warp|auto` picks the physics
+engine (`RunConfig.physics`; by default the preset's, MuJoCo Warp for the NICOL tasks on one GPU with warp-lang), and
+each row names the one it ran on (`engine`). `--minutes` stops a variant when its time is up, `--until S` once its
 mean eval success has reached S (a time-to-success sweep needs no epochs past its last threshold).
 
 `--ray` trains the variants at once instead, each a cell of a Ray task on its share of the machine's or cluster's
@@ -37,7 +38,7 @@ PROCESS_START = time.perf_counter()
 import jax  # noqa: E402 - imported after the process clock starts, so that process_seconds counts it
 import numpy as np  # noqa: E402
 
-from bidal_jax.config import ConfigError  # noqa: E402
+from bidal_jax.config import PHYSICS, ConfigError  # noqa: E402
 from experiments import cli, cluster  # noqa: E402
 from experiments.bench.programs import parse_variant, program_config, seeded_program  # noqa: E402
 
@@ -64,7 +65,7 @@ def train_variant(args, label: str, overrides: dict, network: dict, options: dic
         success = np.asarray(metrics["eval_success"])
         now = time.perf_counter()
         row = {"variant": label, "overrides": overrides, "network": network, "options": options,
-               "physics": env.physics_id, "epoch": e,
+               "physics": env.physics_id, "engine": env.backend, "epoch": e,
                "eval_success": float(success.mean()),
                "eval_success_seeds": [round(float(s), 4) for s in success],
                "env_steps_per_seed": int(np.asarray(state.env_steps)[0]),
@@ -158,7 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float, default=0.0, help="stop a variant after this many minutes (0: never)")
     parser.add_argument("--until", type=float, default=0.0,
                         help="stop a variant once its mean eval success reaches this (0: never)")
-    parser.add_argument("--physics", default="jax", choices=["jax", "warp"])
+    parser.add_argument("--physics", default="preset", choices=["preset", *PHYSICS],
+                        help="the physics engine (RunConfig.physics); preset: the preset's")
     parser.add_argument("--variant", action="append", default=None, help="preset, or k=v,net.k=v,opt.k=v overrides")
     parser.add_argument("--out", help="JSON-lines file, appended to")
     parser.add_argument("--report", nargs="+", help="print the table of these JSON-lines files and exit")

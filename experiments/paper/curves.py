@@ -78,22 +78,22 @@ PROG = "python -m experiments.paper.curves"
 STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on one GPU, per
-# task and agent kind. NICOL image (any agent that sees images): multimodal_bidal on one H100, from results/scaling:
-# nicol_lift with today's preset (banded convs in bfloat16), `experiments.bench.epoch_profile`
-# (profile-nicol_lift-multimodal_bidal-banded.txt: the warm epoch; compile: the first epoch less it); nicol_slide
-# with the preset before it (taps convs in bfloat16), `experiments.bench.sweep` from a cold cache
-# (nicol_slide-multimodal_bidal-cold.jsonl: the mean step of `process_seconds` per epoch; compile: the first
-# epoch's `variant_seconds` less one epoch), an over-estimate: by the updates bench, banded convs take its 1,600
-# updates 2.8 s less (results/scaling/updates-banded.txt), where the visual agents' updates take 0.06 ms more than
-# multimodal_bidal's. NICOL proprio: the grid's own H100 runs, results/curves/<task>/proprio_baseline/metrics.csv
+# task and agent kind. NICOL image (any agent that sees images): multimodal_bidal with today's preset (banded convs
+# in bfloat16, MuJoCo Warp physics) on one H100, `experiments.bench.sweep` from a cold start, in results/scaling
+# (nicol_slide-multimodal_bidal-cold.jsonl to 0.9, nicol_lift-multimodal_bidal-warp.jsonl for 3 epochs): the mean
+# step of `process_seconds` per epoch; compile: the first epoch's `variant_seconds` less one epoch, which holds
+# Warp's kernel compilation into an empty kernel cache (about 107 s of nicol_slide's 192), paid once per machine and
+# model rather than per run: an over-estimate for a grid. visual_bidal's nicol_lift epoch takes 0.3 s more
+# (nicol_lift-visual_bidal-warp.jsonl). NICOL proprio: the grid's own H100 runs (MJX physics),
+# results/curves/<task>/proprio_baseline/metrics.csv
 # (seconds per epoch: `wall_time`'s mean step per epoch; compile: the first epoch's `wall_time_with_compile` less
 # its `wall_time`). Reaching: their config.json names no machine and their metrics.csv has no compile column; their
 # slowest agent of each kind, with 60 s of compiling assumed.
 SECONDS = {
     "planar_reach": {"image": (10.2, 60.0), "proprio": (0.9, 60.0)},
     "ur5_reach": {"image": (6.7, 60.0), "proprio": (0.6, 60.0)},
-    "nicol_slide": {"image": (13.2, 164.3), "proprio": (10.7, 128.0)},
-    "nicol_lift": {"image": (24.7, 157.0), "proprio": (12.4, 148.0)},
+    "nicol_slide": {"image": (6.4, 192.3), "proprio": (10.7, 128.0)},
+    "nicol_lift": {"image": (19.7, 117.0), "proprio": (12.4, 148.0)},
 }
 
 

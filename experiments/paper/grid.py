@@ -39,9 +39,9 @@ PASS_THROUGH = frozenset(
 # config fields that cannot change what a run learns or reports, so `stale` does not compare them: where it is
 # written (run_dir) and where its transfer source lies (init_from: a path; the source's own config is its
 # folder's), how often it saves a checkpoint, how its envs are laid out across devices (env_shards: its
-# random draws differ, not its budget, data or learner), and how its convs are computed (conv_impl: the same
-# function and parameters, float rounding apart)
-NOT_COMPARED = frozenset({"run_dir", "init_from", "checkpoint_every", "env_shards", "conv_impl"})
+# random draws differ, not its budget, data or learner), how its convs are computed (conv_impl: the same
+# function and parameters, float rounding apart) and its physics engine (physics: the same model and fingerprint)
+NOT_COMPARED = frozenset({"run_dir", "init_from", "checkpoint_every", "env_shards", "conv_impl", "physics"})
 DRY_RUN = "dry run: nothing trained or written"  # the last line of every experiment's --dry-run
 
 

@@ -10,13 +10,14 @@ import signal
 import subprocess
 import sys
 import time
+import types
 
 import jax
 import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax.config import resolve
+from bidal_jax.config import ConfigError, resolve
 from bidal_jax.run import checkpoint, loop
 from experiments import run
 from tests.helpers import REPO, restored_state
@@ -69,15 +70,37 @@ def test_stopped_and_resumed_run_is_bit_identical(tmp_path, straight):
     recorded = json.loads((run_dir / "config.json").read_text())
     assert recorded["physics"] == [physics]
     assert recorded["hardware"] == [f"{jax.device_count()} × {jax.devices()[0].device_kind}"]
+    assert recorded["physics_engine"] == ["jax"]
 
 
-@pytest.mark.parametrize("key", ["physics", "hardware"])
+@pytest.mark.parametrize("key", ["physics", "physics_engine", "hardware"])
 def test_history_record_keeps_a_resumed_runs_history(tmp_path, key):
     assert loop.history_record(str(tmp_path), key, "new", resume=True) == ["new"]  # no config.json: unknown history
     (tmp_path / "config.json").write_text(json.dumps({key: ["old"]}))
     assert loop.history_record(str(tmp_path), key, "new", resume=True) == ["old", "new"]
     assert loop.history_record(str(tmp_path), key, "old", resume=True) == ["old"]
     assert loop.history_record(str(tmp_path), key, "new", resume=False) == ["new"]  # a fresh start: its own
+
+
+def _devices(*platforms):
+    return [types.SimpleNamespace(platform=p) for p in platforms]
+
+
+@pytest.mark.parametrize("warp", [True, False])
+def test_physics_engine_is_warp_only_on_one_gpu_with_warp(monkeypatch, warp):
+    monkeypatch.setattr(loop.importlib.util, "find_spec", lambda name: object() if warp else None)
+    assert loop.physics_engine("jax", _devices("gpu")) == "jax"
+    assert loop.physics_engine("auto", _devices("gpu")) == ("warp" if warp else "jax")
+    for devices in (_devices("cpu"), _devices("gpu", "gpu")):
+        assert loop.physics_engine("auto", devices) == "jax"
+        with pytest.raises(ConfigError, match=r"^--physics warp needs one NVIDIA GPU and warp-lang: this run lays "
+                                              r"out .*; allowed here: jax, auto$"):
+            loop.physics_engine("warp", devices)
+    if warp:
+        assert loop.physics_engine("warp", _devices("gpu")) == "warp"
+    else:
+        with pytest.raises(ConfigError, match="warp-lang package is not installed"):
+            loop.physics_engine("warp", _devices("gpu"))
 
 
 def test_physics_id_follows_the_model_options():

@@ -170,12 +170,15 @@ def test_bad_checkpoint_is_refused_and_left_alone(case, good_run, tmp_path, caps
     assert_refused(["--resume", "--run-dir", str(run_dir), "--quiet", *extra], run_dir, expected, capsys)
 
 
-def test_resume_may_change_how_the_convs_are_computed(good_run, capsys):
-    """--conv-impl computes the same function with the same parameters: a resumed run may switch it."""
-    assert run.main(["--print-config", "--resume", "--run-dir", str(good_run), "--conv-impl", "native"]) == 0
+def test_resume_may_change_how_the_convs_are_computed_and_the_engine(good_run, capsys):
+    """--conv-impl computes the same function with the same parameters and --physics steps the same model: a
+    resumed run may switch them."""
+    assert run.main(["--print-config", "--resume", "--run-dir", str(good_run), "--conv-impl", "native",
+                     "--physics", "auto"]) == 0
     resumed = json.loads(capsys.readouterr().out)
-    assert resumed["network"]["conv_impl"] == "native"
-    assert json.loads((good_run / "config.json").read_text())["network"]["conv_impl"] == "patch"
+    assert (resumed["network"]["conv_impl"], resumed["run"]["physics"]) == ("native", "auto")
+    saved = json.loads((good_run / "config.json").read_text())
+    assert (saved["network"]["conv_impl"], saved["run"]["physics"]) == ("patch", "jax")
 
 
 def test_resume_of_a_missing_run_dir_is_refused(tmp_path, capsys):

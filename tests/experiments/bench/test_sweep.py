@@ -38,7 +38,7 @@ def test_until_stops_a_variant_at_its_threshold(tmp_path, monkeypatch):
 
     def fake_program(*args, **kwargs):
         state = types.SimpleNamespace(env_steps=np.zeros(2, int), updates=np.zeros(2, int))
-        env = types.SimpleNamespace(physics_id="0123456789abcdef")
+        env = types.SimpleNamespace(physics_id="0123456789abcdef", backend="jax")
         return lambda keys: state, lambda s: (s, {"eval_success": np.full(2, next(successes))}), None, env
 
     monkeypatch.setattr(sweep, "seeded_program", fake_program)
@@ -46,7 +46,7 @@ def test_until_stops_a_variant_at_its_threshold(tmp_path, monkeypatch):
     sweep.main(["--env", "planar_reach", "--seeds", "2", "--epochs", "4", "--until", "0.9", "--out", str(out)])
     rows = [json.loads(line) for line in out.read_text().splitlines()]
     assert [row["epoch"] for row in rows] == [1, 2, 3]
-    assert {row["physics"] for row in rows} == {"0123456789abcdef"}
+    assert {(row["physics"], row["engine"]) for row in rows} == {("0123456789abcdef", "jax")}
     with pytest.raises(SystemExit, match=r"--until 1.5: a success rate in \[0, 1\]"):
         sweep.main(["--until", "1.5", "--out", str(out)])
 
