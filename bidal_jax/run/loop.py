@@ -74,17 +74,21 @@ def physics_engine(choice: str, devices: list) -> str:
     NVIDIA GPU and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. Warp is not
     spread over several devices: its custom calls have no partitioning rule. ConfigError for warp where it cannot
     run."""
-    if choice == "jax":
+    problem = None if choice == "jax" else warp_problem(devices)
+    if choice == "jax" or (problem and choice == "auto"):
         return "jax"
+    if problem:
+        raise ConfigError(f"--physics warp needs one NVIDIA GPU and warp-lang: {problem}; allowed here: jax, auto")
+    return "warp"
+
+
+def warp_problem(devices: list) -> str | None:
+    """Why MuJoCo Warp cannot step a run laid out on `devices`, or None where it can."""
     if len(devices) != 1 or devices[0].platform != "gpu":
-        problem = f"this run lays out {len(devices)} {devices[0].platform} device(s)"
-    elif importlib.util.find_spec("warp") is None:
-        problem = "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
-    else:
-        return "warp"
-    if choice == "auto":
-        return "jax"
-    raise ConfigError(f"--physics warp needs one NVIDIA GPU and warp-lang: {problem}; allowed here: jax, auto")
+        return f"this run lays out {len(devices)} {devices[0].platform} device(s)"
+    if importlib.util.find_spec("warp") is None:
+        return "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
+    return None
 
 
 def use_physics(env, config: Config) -> str:
@@ -130,6 +134,8 @@ def build(
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
     engine = ", physics on MuJoCo Warp" if env.backend == "warp" else ""
+    if env.backend == "jax" and run.physics == "auto" and programs.devices[0].platform == "gpu":
+        engine = f", physics on MJX-JAX: MuJoCo Warp not used, {warp_problem(programs.devices)}"
     log(
         f"compiling the training program ({run.env}, {run.agent}, {run.seeds} seed(s) on "
         f"{len(programs.devices)} device(s){shards}{engine}) ..."

@@ -80,8 +80,10 @@ def sharded_training(
     """Training throughput of `seeds` vmapped seeds of the env's preset on the first `n_devices`
     devices, laid out as a run lays them out (`devices.device_layout`: seeds over devices, up to
     `env_shards` of the devices left over splitting each seed's envs): env steps per second with
-    learning, and seconds per epoch."""
-    init, epoch, config, env, devices, shards = seeded_program(name, agent, seeds, n_devices, env_shards)
+    learning, and seconds per epoch. The physics is MJX-JAX's on any device count, so that the counts compare one
+    engine (MuJoCo Warp, the NICOL presets' on one GPU, is not laid out over several: `loop.physics_engine`)."""
+    init, epoch, config, env, devices, shards = seeded_program(name, agent, seeds, n_devices, env_shards,
+                                                               backend="jax")
     start = time.perf_counter()
     holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), seeds))}
 
