@@ -89,7 +89,10 @@ def make_losses(networks: Networks, config, bidal: bool) -> Losses:
     def representation(params, _, target_params, batch):
         chex.assert_rank([batch["proprio"], batch["goal"], batch["action"]], 2)
         chex.assert_rank(batch["reward"], 1)
-        phi, next_phi = encode_pair(params.get("encoder"), batch)
+        if bidal:  # f and g (Eqs. 3 and 5) read the online φ(s_{t+1}); the critic alone needs φ(s_t) online
+            phi, next_phi = encode_pair(params.get("encoder"), batch)
+        else:
+            phi = networks.encode(params.get("encoder"), batch.get("image"), batch["proprio"])
         target_next_phi = networks.encode(target_params.get("encoder"), batch.get("next_image"), batch["next_proprio"])
         next_action = networks.actor(target_params["actor"], target_next_phi, batch["goal"])
         next_q = networks.critic(target_params["critic"], target_next_phi, next_action, batch["goal"])

@@ -1,5 +1,7 @@
 """Losses and intrinsic reward against hand-computed values (bidal_jax/losses.py)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -131,3 +133,32 @@ def test_actor_loss_has_the_action_penalty_and_leaves_the_encoder_alone():
     q = nets.critic(params["critic"], batch["phi"], a, batch["goal"])
     np.testing.assert_allclose(float(loss), float(-q.mean() + 2.0 * jnp.mean(a**2)), rtol=1e-6)
     assert "encoder" not in params
+
+
+@pytest.mark.parametrize("agent, frames", [("multimodal_bidal", [6, 3]), ("multimodal_baseline", [3, 3])])
+def test_the_online_encoder_reads_the_next_frame_only_for_bidals_models(agent, frames):
+    """BidAL's f and g read the online φ(s_{t+1}), so its update encodes (s_t, s_{t+1}) online in one pass; a
+    baseline's critic needs φ(s_t) alone online (φ(s_{t+1}) comes from the target encoder): 3 frames, not 6. The
+    loss is the hand-composed one either way."""
+    cfg = TrainConfig(gamma=0.9)
+    nets = AGENTS[agent].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
+    seen = []
+
+    def encode(params, image, proprio):
+        seen.append(image.shape[0])
+        return nets.encode(params, image, proprio)
+
+    params = nets.init(jax.random.PRNGKey(0))
+    target = jax.tree.map(lambda x: x * 0.9, params)
+    batch = _tiny_batch()
+    bidal = AGENTS[agent].family is ddpg.BIDAL
+    loss, _ = losses.make_losses(dataclasses.replace(nets, encode=encode), cfg, bidal).representation(
+        params, params, target, batch)
+    assert seen == frames
+    if not bidal:
+        phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
+        tnphi = nets.encode(target["encoder"], batch["next_image"], batch["next_proprio"])
+        nq = nets.critic(target["critic"], tnphi, nets.actor(target["actor"], tnphi, batch["goal"]), batch["goal"])
+        y = np.clip(np.asarray(batch["reward"]) + 0.9 * np.asarray(nq), -10.0, 0.0)
+        q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
+        np.testing.assert_allclose(float(loss), np.mean((q - y) ** 2), rtol=1e-5)
