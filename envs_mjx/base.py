@@ -191,10 +191,8 @@ class Env(abc.ABC):
     ):
         self.n_substeps = substeps(mj_model.opt.timestep)
         self.mj_model = mj_model
-        # on this process's first device: MJX's default, jax.devices()[0], is process 0's in a run over several
-        self.mjx_model = mjx.put_model(mj_model, device=jax.local_devices()[0])
         self.backend, self.worlds = "jax", 1
-        self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
+        self._put_jax()
         self.episode_length = episode_length
         self.epsilon = epsilon
         self.action_size = action_size
@@ -216,12 +214,11 @@ class Env(abc.ABC):
 
         Warp keeps one contact buffer for all worlds: `worlds` is the most envs stepped at once (envs × seeds)
         and `contacts_per_world` sizes it (contacts beyond it are dropped); `constraints_per_world` is `njmax`.
-        Warp's model and buffers are not rebuilt when the env already steps on it for `worlds`."""
-        if (backend, worlds) == ("warp", worlds) == (self.backend, self.worlds):
+        Nothing is rebuilt when the env already steps on `backend` (Warp: for `worlds`)."""
+        if backend == self.backend and (backend == "jax" or worlds == self.worlds):
             return
         if backend == "jax":
-            self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
-            self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
+            self._put_jax()
         elif backend == "warp":
             from mujoco.mjx.third_party.mujoco_warp import OverflowType
 
@@ -257,7 +254,13 @@ class Env(abc.ABC):
         for name, value in values.items():
             setattr(self.mj_model.opt, name, value)
         self.n_substeps = n_substeps
-        self.use_backend("jax")
+        self._put_jax()
+
+    def _put_jax(self) -> None:
+        """The model and a blank data of MJX's JAX implementation, from `mj_model`, on this process's first device
+        (MJX's default, jax.devices()[0], is process 0's in a run over several)."""
+        self.mjx_model = mjx.put_model(self.mj_model, device=jax.local_devices()[0])
+        self._blank = mjx.make_data(self.mjx_model, device=jax.local_devices()[0])
 
     @property
     def physics_id(self) -> str:
