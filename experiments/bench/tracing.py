@@ -103,6 +103,13 @@ def component(op_name: str, depth: int = 0) -> str:
     return next((label for scope, label in EPOCH_PARTS if scope in scopes), "other")
 
 
+def instructions_by_component(hlo_text: str) -> list[tuple[str, int]]:
+    """(part, instructions) of a compiled module's HLO text, most first: each instruction with an op_name of its
+    own or inherited (`op_names`), those inside fusions too, counted for its `component`. Where a program's code
+    goes, and with it much of its compile (`experiments.bench.compile_time --parts`)."""
+    return collections.Counter(component(op) for op in op_names(hlo_text).values()).most_common()
+
+
 def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> list[dict]:
     """A trace's operations per `component(..., depth)` of their op_name in `names` (`op_names`): rows of {component,
     seconds, events, inherited, top: its 2 largest kernels as (name, share of its seconds)}, largest first. On a

@@ -101,3 +101,19 @@ def test_relayout_keeps_the_episodes_in_insertion_order_for_any_shard_count():
     partial = replay.relayout(_sharded_buffer(shards=4, capacity=16, envs=4, cycles=2), 4, 1)
     assert int(partial.size) == 8 and int(partial.position) == 8
     np.testing.assert_array_equal(np.asarray(partial.episodes["achieved_goal"][:8, 0, 0]) // 100, [0] * 4 + [1] * 4)
+
+
+def test_draws_are_uniform_over_episodes_steps_and_later_steps():
+    """Every episode of the first `n_episodes`, every step and every later step t' in [t+1, T] is drawn, as often
+    as the others within sampling error."""
+    n, episodes = 64_000, _episodes(8, 0)
+    ep, t, future_t, relabel, _ = replay._draw(episodes, jax.random.PRNGKey(1), n, 5, 0.8)
+    ep, t, future_t = np.asarray(ep), np.asarray(t), np.asarray(future_t)
+    for values, size in ((ep, 5), (t, T)):
+        counts = np.bincount(values, minlength=size)
+        assert len(counts) == size and np.abs(counts / (n / size) - 1).max() < 0.1
+    assert ((future_t > t) & (future_t <= T)).all()
+    first = t == 0  # t' uniform over [1, T]
+    counts = np.bincount(future_t[first], minlength=T + 1)[1:]
+    assert np.abs(counts / (first.sum() / T) - 1).max() < 0.1
+    assert 0.79 < np.asarray(relabel).mean() < 0.81

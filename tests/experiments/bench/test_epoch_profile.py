@@ -131,3 +131,9 @@ def test_on_a_cpu_host_operations_count_less_control_flow():
     ]
     assert [(r["component"], r["events"]) for r in tracing.by_component(events, names)] == [
         ("update: optimiser (Adam)", 1)]
+
+
+def test_a_compiled_programs_instructions_count_for_their_parts():
+    """Every instruction with an op_name, its own or inherited, inside fusions too; those without none."""
+    assert tracing.instructions_by_component(HLO) == [("update: Encoder backward", 3),
+                                                      ("update: optimiser (Adam)", 2), ("physics", 1)]
