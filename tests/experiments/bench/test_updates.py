@@ -19,7 +19,20 @@ def test_the_program_runs_the_asked_updates_of_every_seed_on_a_full_buffer():
     assert jax.tree.leaves(metrics)[0].shape[:2] == (2, 3)  # [seeds, updates]
 
 
-def test_the_compiled_update_names_its_parts_for_the_profile():
+@pytest.fixture
+def full_op_names():
+    """Programs compiled here with JAX's full source locations, whose op_names carry the scopes, and not read from
+    the persistent compilation cache: its key leaves the locations out, so an entry that a run in this process or
+    an earlier one compiled with short locations (`loop.short_source_locations`) would come back with short names."""
+    before = jax.config.jax_include_full_tracebacks_in_locations, jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_include_full_tracebacks_in_locations", True)
+    jax.config.update("jax_enable_compilation_cache", False)
+    yield
+    jax.config.update("jax_include_full_tracebacks_in_locations", before[0])
+    jax.config.update("jax_enable_compilation_cache", before[1])
+
+
+def test_the_compiled_update_names_its_parts_for_the_profile(full_op_names):
     """The learner's `jax.named_scope`s reach the compiled program, so that `tracing.by_component` can attribute its
     kernels: every part of a BidAL image agent's update is found among its instructions' op_names."""
     compiled, *_ = bench_updates.update_program("planar_reach", "multimodal_bidal", 1, 1, TINY + ",net.conv_channels=2")
