@@ -261,8 +261,9 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # the NICOL tasks are sized for one GPU: many parallel envs, big batches and many gradient updates, which cost
     # little beside the physics there; the same for every agent of a task (equal budgets). nicol_slide: one cycle
     # of 2,560 envs and 1,600 updates an epoch (128,000 env steps, one update per 80), since one wide cycle costs
-    # fewer sequential physics steps: multimodal_bidal (5 seeds, one H100) reaches 0.9 at 338 s from a cold start,
-    # 14.3 s an epoch, where 512 envs × 5 cycles (the same env steps and updates) take 17.8 s an epoch
+    # fewer sequential physics steps: multimodal_bidal (5 seeds, one H100, the nets and physics of that comparison)
+    # reached 0.9 at 338 s from a cold start, 14.3 s an epoch, where 512 envs × 5 cycles (the same env steps and
+    # updates) took 17.8 s an epoch; today's preset (banded convs, MuJoCo Warp) reaches it at 280 s, 6.4 s an epoch
     # (docs/results.md, "Learning speed on nicol_slide: the preset")
     "nicol_slide": gpu_preset(2560, 1, 1600),
     # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps), since
