@@ -58,7 +58,7 @@ def _draw(episodes: dict, key: jax.Array, n: int, n_episodes: jax.Array | int, f
     (HER `future`), else the episode's desired goal. Returns (ep, t, t', relabelled, goal)."""
     horizon = episodes["action"].shape[1]
     # one draw of 32 random bits per choice, reduced modulo its range (a bias below range / 2^32): far less code
-    # than `jax.random.randint`'s three draws of two halves each, which this draw is made in every update
+    # than three `jax.random.randint`s of two draws each, in a draw made in every update
     bits = jax.random.bits(key, (4, n), jnp.uint32)
     ep = (bits[0] % jnp.asarray(n_episodes, jnp.uint32)).astype(jnp.int32)
     t = (bits[1] % horizon).astype(jnp.int32)

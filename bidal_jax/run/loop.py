@@ -74,12 +74,14 @@ def physics_engine(choice: str, devices: list) -> str:
     NVIDIA GPU and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. Warp is not
     spread over several devices: its custom calls have no partitioning rule. ConfigError for warp where it cannot
     run."""
-    problem = None if choice == "jax" else warp_problem(devices)
-    if choice == "jax" or (problem and choice == "auto"):
+    if choice == "jax":
         return "jax"
-    if problem:
-        raise ConfigError(f"--physics warp needs one NVIDIA GPU and warp-lang: {problem}; allowed here: jax, auto")
-    return "warp"
+    problem = warp_problem(devices)
+    if problem is None:
+        return "warp"
+    if choice == "auto":
+        return "jax"
+    raise ConfigError(f"--physics warp needs one NVIDIA GPU and warp-lang: {problem}; allowed here: jax, auto")
 
 
 def warp_problem(devices: list) -> str | None:
@@ -91,14 +93,17 @@ def warp_problem(devices: list) -> str | None:
     return None
 
 
-def use_physics(env, config: Config) -> str:
-    """Step `env` on the engine of `config.run.physics` (`physics_engine`), Warp's contact buffer sized for the
-    envs a run steps at once (seeds × the wider of its training and evaluation envs); the engine's name."""
-    run, train = config.run, config.train
-    devices, _ = device_layout(run.seeds, train, run.env_shards)
-    engine = physics_engine(run.physics, devices)
-    env.use_backend(engine, worlds=run.seeds * max(train.num_envs, train.eval_envs))
-    return engine
+def physics_worlds(seeds: int, train) -> int:
+    """The most envs a program of `seeds` seeds and the `TrainConfig` `train` steps at once, the worlds Warp's
+    contact buffer is sized for: seeds × the wider of its training and evaluation envs."""
+    return seeds * max(train.num_envs, train.eval_envs)
+
+
+def use_physics(env, config: Config) -> None:
+    """Step `env` on the engine of `config.run.physics` (`physics_engine`) for the run's worlds (`physics_worlds`)."""
+    run = config.run
+    devices, _ = device_layout(run.seeds, config.train, run.env_shards)
+    env.use_backend(physics_engine(run.physics, devices), worlds=physics_worlds(run.seeds, config.train))
 
 
 def restore_state(env, config: Config, step: int | None = None):

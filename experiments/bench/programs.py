@@ -21,7 +21,7 @@ import envs_mjx
 from bidal_jax.config import Config, NetworkConfig, TrainConfig, resolve
 from bidal_jax.run import validate
 from bidal_jax.run.devices import device_layout, make_seeded
-from bidal_jax.run.loop import physics_engine
+from bidal_jax.run.loop import physics_engine, physics_worlds
 from bidal_jax.train import make_train
 
 
@@ -94,8 +94,8 @@ def seeded_program(
     config = program_config(name, agent, train, network)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
     engine = physics_engine(config.run.physics if backend == "preset" else backend, devices)
-    worlds = seeds * max(config.train.num_envs, config.train.eval_envs)
-    env = make_env(name, engine, worlds, render=config.agent.uses_image, options=options)
+    env = make_env(name, engine, physics_worlds(seeds, config.train), render=config.agent.uses_image,
+                   options=options)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return SeededProgram(init, epoch, config.train, env, devices, shards)
 
