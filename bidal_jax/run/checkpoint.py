@@ -22,6 +22,8 @@ with Orbax partial restore, checked against the digest like a full restore. Read
 items they need, each with its own handler (no warning about the manager's `metrics` item).
 A checkpoint carried without its `buffer` item restores only with another buffer given in its
 place (`restore(..., buffer=...)`: a run resumed with `--fresh-buffer`).
+A checkpoint whose Adam moments were saved per parameter array (before `train.optimizer` raveled each
+network group's parameters into one vector) restores with them raveled in the parameters' order.
 """
 
 from __future__ import annotations
@@ -239,6 +241,50 @@ def _check_structure(saved: Any, target: Any, where: str, partial: bool = False)
             )
 
 
+def _named(tree: Any) -> dict[str, Any]:
+    """Leaf name -> leaf of a tree, in the tree's leaf order."""
+    return {leaf_name(path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
+def _per_parameter_moments(saved: Any, target: Any) -> dict[str, list[str]]:
+    """{target leaf: the saved leaves it ravels} where a checkpoint's optimiser state keeps Adam's moments per
+    parameter array (as saved before `train.optimizer` raveled each network group's parameters into one vector)
+    and the target wants one vector [seeds, n] each; {} where the structures differ otherwise, or not at all."""
+    have, want = _named(saved), _named(target)
+    extra = [name for name in have if name not in want]
+    moments = {name: [e for e in extra if e.startswith(f"{name}/")] for name in want if name not in have}
+    if not extra or not all(moments.values()) or sum(map(len, moments.values())) != len(extra):
+        return {}
+    for name, parts in moments.items():
+        seeds, size = want[name].shape[0], want[name].shape[-1]
+        if len(want[name].shape) != 2 or any(have[p].shape[0] != seeds for p in parts) \
+                or sum(int(np.prod(have[p].shape[1:])) for p in parts) != size:
+            return {}
+    return moments
+
+
+def _sharded_like(meta: Any, target: Any, name: str, moments: dict[str, list[str]]) -> jax.ShapeDtypeStruct:
+    """The restore target of the saved leaf `name`: its shape and dtype, placed as the target leaf it is (or whose
+    moments it holds, sharded by its leading seed axis)."""
+    want = _named(target)
+    like = want.get(name) or next(want[flat] for flat, parts in moments.items() if name in parts)
+    return jax.ShapeDtypeStruct(tuple(meta.shape), meta.dtype, sharding=like.sharding)
+
+
+def _raveled_moments(restored: Any, target: Any, moments: dict[str, list[str]]) -> Any:
+    """`restored` (saved per parameter) in the target's structure: each flat moment the saved moments of its
+    parameters, each raveled per seed and joined in the parameters' leaf order (`optax.flatten`'s ravel)."""
+    have = _named(restored)
+
+    def leaf(path: tuple, _: Any) -> jax.Array:
+        name = leaf_name(path)
+        if name not in moments:
+            return have[name]
+        return jax.numpy.concatenate([have[p].reshape(have[p].shape[0], -1) for p in moments[name]], axis=1)
+
+    return jax.tree_util.tree_map_with_path(leaf, target)
+
+
 def restore(
     directory: str, abstract_state: Any, step: int | None = None, env_shards: int = 1, buffer: Any = None
 ) -> tuple[Any, dict, int]:
@@ -254,13 +300,19 @@ def restore(
     where = f"checkpoint {step} in {directory}"
     fields, saved_buffer = _split(jax.tree.map(ocp.utils.to_shape_dtype_struct, abstract_state))
     targets = {"state": fields} if buffer is not None else {"state": fields, "buffer": saved_buffer}
-    _check_structure(_metadata(path, where, tuple(targets)), targets, where)
+    saved = _metadata(path, where, tuple(targets))
+    flat_moments = _per_parameter_moments(saved["state"], fields)
+    if flat_moments:  # an optimiser state saved before Adam's moments were one vector per group
+        targets["state"] = jax.tree_util.tree_map_with_path(
+            lambda p, meta: _sharded_like(meta, fields, leaf_name(p), flat_moments), saved["state"])
+    _check_structure(saved, targets, where)
     args = {name: ocp.args.StandardRestore(target) for name, target in targets.items()}
     restored = _restore_checked(path, where, {**args, "config": ocp.args.JsonRestore()})
+    state = _raveled_moments(restored["state"], fields, flat_moments) if flat_moments else restored["state"]
     if buffer is None:
         saved_shards = (restored["digest"] or {}).get("env_shards", 1)  # checkpoints before env shards: 1
         buffer = replay.relayout(restored["buffer"], saved_shards, env_shards, axis=1)  # after the seed axis
-    return type(abstract_state)(**restored["state"], buffer=buffer), restored["config"], step
+    return type(abstract_state)(**state, buffer=buffer), restored["config"], step
 
 
 def _metadata(path: str, where: str, names: tuple[str, ...] = ARRAY_ITEMS) -> dict:
