@@ -232,7 +232,10 @@ def _check_structure(saved: Any, target: Any, where: str, partial: bool = False)
             f"{where} holds a state of another shape: "
             + "; ".join(filter(None, [missing and f"missing {missing[:3]}", extra and f"unexpected {extra[:3]}"]))
         )
-    for name, leaf in want.items():
+    # the parameters first: a parameter's shape names the config field that differs (an optimiser's raveled
+    # moments only their total size)
+    for name in sorted(want, key=lambda name: "params" not in name.split("/")[:2]):
+        leaf = want[name]
         if tuple(have[name].shape) != tuple(leaf.shape) or np.dtype(have[name].dtype) != np.dtype(leaf.dtype):
             raise CheckpointError(
                 f"{where} holds a state of another shape: {name} is {tuple(have[name].shape)} "
