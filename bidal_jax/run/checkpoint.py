@@ -221,11 +221,15 @@ def read_config(directory: str, step: int | None = None) -> dict:
     return config
 
 
+def _named(tree: Any) -> dict[str, Any]:
+    """Leaf name -> leaf of a tree, in the tree's leaf order."""
+    return {leaf_name(path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
+
+
 def _check_structure(saved: Any, target: Any, where: str, partial: bool = False) -> None:
     """Raise unless the saved leaves have the target's names, shapes and dtypes (with `partial`,
     the saved state may hold more leaves than the target)."""
-    have = {leaf_name(p): leaf for p, leaf in jax.tree_util.tree_flatten_with_path(saved)[0]}
-    want = {leaf_name(p): leaf for p, leaf in jax.tree_util.tree_flatten_with_path(target)[0]}
+    have, want = _named(saved), _named(target)
     missing, extra = sorted(set(want) - set(have)), [] if partial else sorted(set(have) - set(want))
     if missing or extra:
         raise CheckpointError(
@@ -242,11 +246,6 @@ def _check_structure(saved: Any, target: Any, where: str, partial: bool = False)
                 f"{np.dtype(have[name].dtype)}, "
                 f"this config needs {tuple(leaf.shape)} {np.dtype(leaf.dtype)}"
             )
-
-
-def _named(tree: Any) -> dict[str, Any]:
-    """Leaf name -> leaf of a tree, in the tree's leaf order."""
-    return {leaf_name(path): leaf for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}
 
 
 def _per_parameter_moments(saved: Any, target: Any) -> dict[str, list[str]]:
@@ -266,12 +265,14 @@ def _per_parameter_moments(saved: Any, target: Any) -> dict[str, list[str]]:
     return moments
 
 
-def _sharded_like(meta: Any, target: Any, name: str, moments: dict[str, list[str]]) -> jax.ShapeDtypeStruct:
-    """The restore target of the saved leaf `name`: its shape and dtype, placed as the target leaf it is (or whose
-    moments it holds, sharded by its leading seed axis)."""
+def _per_parameter_target(saved: Any, target: Any, moments: dict[str, list[str]]) -> Any:
+    """The restore target of a `saved` state that keeps moments per parameter array: each saved leaf's shape and
+    dtype, placed as the target leaf it is, or as the raveled moment it is part of (sharded by the seed axis)."""
     want = _named(target)
-    like = want.get(name) or next(want[flat] for flat, parts in moments.items() if name in parts)
-    return jax.ShapeDtypeStruct(tuple(meta.shape), meta.dtype, sharding=like.sharding)
+    like = {**want, **{part: want[flat] for flat, parts in moments.items() for part in parts}}
+    return jax.tree_util.tree_map_with_path(
+        lambda path, meta: jax.ShapeDtypeStruct(tuple(meta.shape), meta.dtype, sharding=like[leaf_name(path)].sharding),
+        saved)
 
 
 def _raveled_moments(restored: Any, target: Any, moments: dict[str, list[str]]) -> Any:
@@ -306,8 +307,7 @@ def restore(
     saved = _metadata(path, where, tuple(targets))
     flat_moments = _per_parameter_moments(saved["state"], fields)
     if flat_moments:  # an optimiser state saved before Adam's moments were one vector per group
-        targets["state"] = jax.tree_util.tree_map_with_path(
-            lambda p, meta: _sharded_like(meta, fields, leaf_name(p), flat_moments), saved["state"])
+        targets["state"] = _per_parameter_target(saved["state"], fields, flat_moments)
     _check_structure(saved, targets, where)
     args = {name: ocp.args.StandardRestore(target) for name, target in targets.items()}
     restored = _restore_checked(path, where, {**args, "config": ocp.args.JsonRestore()})
