@@ -243,8 +243,8 @@ def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> 
     that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as banded matmuls in bfloat16
     (`NetworkConfig.conv_impl`, `vision_dtype`): on one H100 an image agent's update takes 2.4 ms against 5.6 with
     float32 patches and 4.2 with bfloat16 taps, and nicol_slide and planar_reach learn alike over 3 seeds
-    (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run has one NVIDIA GPU and warp-lang
-    (`RunConfig.physics` auto): on one H100 a nicol_slide multimodal_bidal epoch takes 6.4 s against 10.5 and a
+    (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and
+    warp-lang imports (`RunConfig.physics` auto): on one H100 a nicol_slide multimodal_bidal epoch takes 6.4 s against 10.5 and a
     nicol_lift one 19.7 s against 25.4 (docs/results.md, "MJX-JAX against MuJoCo Warp"); the CPU-sized tasks keep
     the defaults."""
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,

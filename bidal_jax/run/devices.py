@@ -86,10 +86,10 @@ def _state_specs() -> TrainState:
 
 
 def seed_sharding(devices: Sequence[jax.Device], shards: int = 1) -> Any:
-    """Where a TrainState[S] (or any seed-leading pytree, with `shards` 1) lives on `devices`, for
-    `jax.device_put`: with `shards` 1, every leaf's leading (seed) axis split over a 1-D mesh
-    named "seeds"; else the state's leaves on the [seeds, envs] mesh (`_state_specs`)."""
-    if shards == 1:
+    """Where a TrainState[S] (or any seed-leading pytree, on one device) lives on `devices`, for
+    `jax.device_put`: on one device, every leaf's leading (seed) axis on a 1-D mesh named "seeds";
+    on several, the state's leaves on the [seeds, envs] mesh (`_state_specs`, envs of size `shards`)."""
+    if len(devices) == 1:
         return NamedSharding(Mesh(np.array(devices), (SEED_AXIS,)), P(SEED_AXIS))
     mesh = _mesh(devices, shards)
     return jax.tree.map(lambda spec: NamedSharding(mesh, spec), _state_specs(), is_leaf=lambda x: isinstance(x, P))
@@ -114,14 +114,15 @@ def over_seeds(fn: Callable) -> Callable:
 def make_seeded(init: Callable, epoch: Callable, devices: Sequence[jax.Device] | None = None, shards: int = 1):
     """Seeds as one vmapped, jitted program: `init(keys[S]) -> TrainState[S]`, `epoch`.
 
-    The seed axis of the state, keys and metrics is sharded over `devices` (default: the
-    first device) with `jax.sharding`: JAX's SPMD partitioner runs S / len(devices) seeds on
-    each device in one program, with no communication between seeds. With `shards` k > 1
-    (`init` and `epoch` from `make_train(..., env_shards=k)`), `devices` form a [S-shards, k]
-    mesh and the program is a `shard_map` over it: each device runs its seeds' share of the envs.
+    On one device (the default: the first) the program is the seeds' `over_seeds` map. On several,
+    `devices` form a [seed devices, k] mesh (k = `shards`, with `init` and `epoch` from
+    `make_train(..., env_shards=k)`) and the program is a `shard_map` over it: each device runs its
+    S / (len(devices) / k) seeds' program on its 1 / k of their envs, with no communication between
+    seeds. Each device's program is written out rather than left to JAX's SPMD partitioner, so that
+    custom calls without a partitioning rule (MuJoCo Warp's physics) step each device's own envs.
     """
     devices = jax.devices()[:1] if devices is None else devices
-    if shards == 1:
+    if len(devices) == 1:
         sharding = seed_sharding(devices)
         return (
             jax.jit(over_seeds(init), in_shardings=sharding, out_shardings=sharding),
@@ -129,9 +130,11 @@ def make_seeded(init: Callable, epoch: Callable, devices: Sequence[jax.Device] |
         )
     # no vma type check: MJX's loops carry env state that starts replicated (zeros) and becomes
     # shard-varying; what leaves the program replicated is averaged or gathered (`make_train`)
-    mesh, specs = _mesh(devices, shards), _state_specs()
-    sharded = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
+    mesh, specs, state = _mesh(devices, shards), _state_specs(), seed_sharding(devices, shards)
+    sharded, seeds = functools.partial(jax.shard_map, mesh=mesh, check_vma=False), NamedSharding(mesh, P(SEED_AXIS))
     return (
-        jax.jit(sharded(over_seeds(init), in_specs=P(SEED_AXIS), out_specs=specs)),
-        jax.jit(sharded(over_seeds(epoch), in_specs=(specs,), out_specs=(specs, P(SEED_AXIS))), donate_argnums=0),
+        jax.jit(sharded(over_seeds(init), in_specs=P(SEED_AXIS), out_specs=specs), in_shardings=seeds,
+                out_shardings=state),
+        jax.jit(sharded(over_seeds(epoch), in_specs=(specs,), out_specs=(specs, P(SEED_AXIS))), in_shardings=(state,),
+                out_shardings=(state, seeds), donate_argnums=0),
     )

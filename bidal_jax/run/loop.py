@@ -70,10 +70,9 @@ def make_programs(env, config: Config) -> Programs:
 
 
 def physics_engine(choice: str, devices: list) -> str:
-    """The engine of a run of `RunConfig.physics` `choice` laid out on `devices`: "warp" (MuJoCo Warp) needs one
-    NVIDIA GPU and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. Warp is not
-    spread over several devices: its custom calls have no partitioning rule. ConfigError for warp where it cannot
-    run."""
+    """The engine of a run of `RunConfig.physics` `choice` laid out on `devices`: "warp" (MuJoCo Warp) needs NVIDIA
+    GPUs and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. On several devices each
+    steps its own envs' Warp physics (`devices.make_seeded`). ConfigError for warp where it cannot run."""
     if choice == "jax":
         return "jax"
     problem = warp_problem(devices)
@@ -81,29 +80,32 @@ def physics_engine(choice: str, devices: list) -> str:
         return "warp"
     if choice == "auto":
         return "jax"
-    raise ConfigError(f"--physics warp needs one NVIDIA GPU and warp-lang: {problem}; allowed here: jax, auto")
+    raise ConfigError(f"--physics warp needs NVIDIA GPUs and warp-lang: {problem}; allowed here: jax, auto")
 
 
 def warp_problem(devices: list) -> str | None:
     """Why MuJoCo Warp cannot step a run laid out on `devices`, or None where it can."""
-    if len(devices) != 1 or devices[0].platform != "gpu":
-        return f"this run lays out {len(devices)} {devices[0].platform} device(s)"
+    platforms = sorted({d.platform for d in devices})
+    if platforms != ["gpu"]:
+        return f"this run lays out {len(devices)} {'/'.join(platforms)} device(s)"
     if importlib.util.find_spec("warp") is None:
         return "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
     return None
 
 
-def physics_worlds(seeds: int, train) -> int:
-    """The most envs a program of `seeds` seeds and the `TrainConfig` `train` steps at once, the worlds Warp's
-    contact buffer is sized for: seeds × the wider of its training and evaluation envs."""
-    return seeds * max(train.num_envs, train.eval_envs)
+def physics_worlds(seeds: int, train, devices: int = 1, shards: int = 1) -> int:
+    """The most envs one device steps at once in a program of `seeds` seeds and the `TrainConfig` `train` laid out
+    on `devices` devices with `shards` env shards (`devices.device_layout`), the worlds Warp's contact buffer is
+    sized for: each seed device's seeds × the wider of its shard of the training and evaluation envs."""
+    return seeds // (devices // shards) * (max(train.num_envs, train.eval_envs) // shards)
 
 
 def use_physics(env, config: Config) -> None:
     """Step `env` on the engine of `config.run.physics` (`physics_engine`) for the run's worlds (`physics_worlds`)."""
     run = config.run
-    devices, _ = device_layout(run.seeds, config.train, run.env_shards)
-    env.use_backend(physics_engine(run.physics, devices), worlds=physics_worlds(run.seeds, config.train))
+    devices, shards = device_layout(run.seeds, config.train, run.env_shards)
+    env.use_backend(physics_engine(run.physics, devices),
+                    worlds=physics_worlds(run.seeds, config.train, len(devices), shards))
 
 
 def restore_state(env, config: Config, step: int | None = None):

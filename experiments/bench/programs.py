@@ -94,8 +94,8 @@ def seeded_program(
     config = program_config(name, agent, train, network)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
     engine = physics_engine(config.run.physics if backend == "preset" else backend, devices)
-    env = make_env(name, engine, physics_worlds(seeds, config.train), render=config.agent.uses_image,
-                   options=options)
+    env = make_env(name, engine, physics_worlds(seeds, config.train, len(devices), shards),
+                   render=config.agent.uses_image, options=options)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return SeededProgram(init, epoch, config.train, env, devices, shards)
 

@@ -75,15 +75,15 @@ def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int
 
 
 def sharded_training(
-    name: str, agent: str, seeds: int, n_devices: int, repeats: int, env_shards: int = 1
+    name: str, agent: str, seeds: int, n_devices: int, repeats: int, env_shards: int = 1, physics: str = "jax"
 ) -> dict[str, float]:
     """Training throughput of `seeds` vmapped seeds of the env's preset on the first `n_devices`
     devices, laid out as a run lays them out (`devices.device_layout`: seeds over devices, up to
     `env_shards` of the devices left over splitting each seed's envs): env steps per second with
-    learning, and seconds per epoch. The physics is MJX-JAX's on any device count, so that the counts compare one
-    engine (MuJoCo Warp, the NICOL presets' on one GPU, is not laid out over several: `loop.physics_engine`)."""
+    learning, and seconds per epoch. The physics engine is `physics` (jax or warp) on every device count, so that
+    the counts compare one engine."""
     init, epoch, config, env, devices, shards = seeded_program(name, agent, seeds, n_devices, env_shards,
-                                                               backend="jax")
+                                                               backend=physics)
     start = time.perf_counter()
     holder = {"state": init(jax.random.split(jax.random.PRNGKey(0), seeds))}
 
@@ -97,6 +97,7 @@ def sharded_training(
     steps = seeds * config.cycles_per_epoch * config.num_envs * env.episode_length
     return {
         "devices": len(devices),
+        "engine": env.backend,
         "env_shards": shards,
         "seeds": seeds,
         "epoch_seconds": seconds,
@@ -157,6 +158,10 @@ def main(argv: list[str] | None = None) -> None:
         default=1,
         help="--devices benchmark: at most this many devices split each seed's envs (as a run's --env-shards)",
     )
+    parser.add_argument(
+        "--physics", choices=("jax", "warp"), default="jax",
+        help="--devices benchmark: the physics engine on every device count (warp: MuJoCo Warp, NVIDIA GPUs)",
+    )
     args = parser.parse_args(argv)
 
     device = jax.devices()[0]
@@ -201,7 +206,8 @@ def scaling(args: argparse.Namespace) -> None:
         raise SystemExit(f"error: {err}") from err
     rows = []
     for n in args.devices:
-        rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats, args.env_shards))
+        rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats, args.env_shards,
+                                    args.physics))
         print(json.dumps(rows[-1]), flush=True)
     base = rows[0]
     print(f"\n{args.envs[0]} {args.agent}, {args.seeds} seeds: training throughput by device count\n")

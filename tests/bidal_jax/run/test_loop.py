@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax.config import ConfigError, resolve
+from bidal_jax.config import ConfigError, TrainConfig, resolve
 from bidal_jax.run import checkpoint, loop
 from experiments import run
 from tests.helpers import REPO, restored_state
@@ -87,20 +87,30 @@ def _devices(*platforms):
 
 
 @pytest.mark.parametrize("warp", [True, False])
-def test_physics_engine_is_warp_only_on_one_gpu_with_warp(monkeypatch, warp):
+def test_physics_engine_is_warp_only_on_gpus_with_warp(monkeypatch, warp):
     monkeypatch.setattr(loop.importlib.util, "find_spec", lambda name: object() if warp else None)
-    assert loop.physics_engine("jax", _devices("gpu")) == "jax"
-    assert loop.physics_engine("auto", _devices("gpu")) == ("warp" if warp else "jax")
-    for devices in (_devices("cpu"), _devices("gpu", "gpu")):
+    for gpus in (_devices("gpu"), _devices("gpu", "gpu")):  # several GPUs: each steps its own envs
+        assert loop.physics_engine("jax", gpus) == "jax"
+        assert loop.physics_engine("auto", gpus) == ("warp" if warp else "jax")
+        if warp:
+            assert loop.physics_engine("warp", gpus) == "warp"
+        else:
+            with pytest.raises(ConfigError, match="warp-lang package is not installed"):
+                loop.physics_engine("warp", gpus)
+    for devices in (_devices("cpu"), _devices("cpu", "cpu")):
         assert loop.physics_engine("auto", devices) == "jax"
-        with pytest.raises(ConfigError, match=r"^--physics warp needs one NVIDIA GPU and warp-lang: this run lays "
-                                              r"out .*; allowed here: jax, auto$"):
+        with pytest.raises(ConfigError, match=r"^--physics warp needs NVIDIA GPUs and warp-lang: this run lays "
+                                              r"out \d cpu device\(s\); allowed here: jax, auto$"):
             loop.physics_engine("warp", devices)
-    if warp:
-        assert loop.physics_engine("warp", _devices("gpu")) == "warp"
-    else:
-        with pytest.raises(ConfigError, match="warp-lang package is not installed"):
-            loop.physics_engine("warp", _devices("gpu"))
+
+
+def test_warps_contact_buffer_is_sized_for_one_devices_envs():
+    """Each device steps its seeds' share of the envs: 8 seeds of 2,560 envs on 2 devices, 1,280 each."""
+    train = TrainConfig(num_envs=2560, eval_envs=128)
+    assert loop.physics_worlds(8, train) == 8 * 2560
+    assert loop.physics_worlds(8, train, devices=2) == 4 * 2560
+    assert loop.physics_worlds(1, train, devices=2, shards=2) == 1280
+    assert loop.physics_worlds(2, TrainConfig(num_envs=16, eval_envs=64), devices=4, shards=2) == 32
 
 
 def test_physics_id_follows_the_model_options():
