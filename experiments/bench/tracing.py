@@ -85,6 +85,30 @@ def op_names(hlo_text: str) -> dict[str, str]:
     return {kernel_name(name): op for name in operands for op in [resolve(name)] if op is not None}
 
 
+def shared_kernels(hlo_text: str) -> dict[str, list[str]]:
+    """{kernel name: the kernel names of every fusion alike to it, itself included} for the fusions of a compiled
+    module's HLO text that have a twin: the same result shape and the same fused computation, its instructions'
+    names and metadata aside. XLA's GPU backend compiles such fusions once and launches each under the first one's
+    kernel name, and a kernel inside a CUDA graph carries no other name in a trace; so a kernel of the rollout's
+    policy pass and its twin in the updates (the target encoder on s_{t+1} has the policy's batch) are one name."""
+    bodies, computation, fusions = collections.defaultdict(list), None, {}
+    for line in hlo_text.splitlines():
+        if (header := _COMPUTATION.match(line)) is not None:
+            computation = header.group(1)
+            continue
+        if (instruction := _INSTRUCTION.match(line)) is None:
+            continue
+        name, rest = instruction.groups()
+        body = _OPERAND.sub("%", rest.split(", metadata=")[0].split(", backend_config=")[0])
+        bodies[computation].append(body)
+        if (called := _CALLS.search(rest)) is not None and " fusion(" in f" {rest}":
+            fusions[name] = (rest.split(" fusion(")[0], called.group(1))
+    twins = collections.defaultdict(list)
+    for name, (shape, called) in fusions.items():
+        twins[(shape, tuple(bodies[called]))].append(kernel_name(name))
+    return {kernel: group for group in twins.values() if len(group) > 1 for kernel in group}
+
+
 def component(op_name: str, depth: int = 0) -> str:
     """The part of a training epoch an operation belongs to, by the scopes in its `op_name`
     ("jit(epoch)/.../update/vmap(transpose(jvp(Encoder)))/VisionBranch_0/PatchConv_1/..." -> "update: Encoder
@@ -110,14 +134,18 @@ def instructions_by_component(hlo_text: str) -> list[tuple[str, int]]:
     return collections.Counter(component(op) for op in op_names(hlo_text).values()).most_common()
 
 
-def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> list[dict]:
+def by_component(events: list[dict], names: dict[str, str], depth: int = 0,
+                 shared: dict[str, list[str]] | None = None) -> list[dict]:
     """A trace's operations per `component(..., depth)` of their op_name in `names` (`op_names`): rows of {component,
     seconds, events, inherited, top: its 2 largest kernels as (name, share of its seconds)}, largest first. On a
     GPU the operations are the device's events. A kernel found by neither its name nor its "hlo_op" argument (a
     library's kernel inside a CUDA graph, such as cuBLAS's `nvjet_*` matmuls, which carry no HLO name there) counts
     for the part of the last attributed kernel before it on its stream (`inherited` counts those); a copy or
-    memset so found, or a kernel with none before it, is "unattributed". On a CPU the operations are the host's
-    events of an HLO instruction (an "hlo_op" argument), less control flow (a loop's event spans its body's)."""
+    memset so found, or a kernel with none before it, is "unattributed". A kernel that twin fusions of several parts
+    share (`shared`, from `shared_kernels`) counts for the twin's part that the kernel before it on its stream has,
+    else for the twin's on the same side of the updates (an update's part, or not), else for its name's. On a CPU the
+    operations are the host's events of an HLO instruction (an "hlo_op" argument), less control flow (a loop's event
+    spans its body's)."""
     devices = {pid for (pid, tid), name in _names(events).items() if tid is None and name.startswith("/device:")}
 
     def counted(e: dict) -> bool:
@@ -129,10 +157,21 @@ def by_component(events: list[dict], names: dict[str, str], depth: int = 0) -> l
         op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
         return component(op, depth) if op else None
 
+    def twin(e: dict, part: str | None, last: str | None) -> str | None:
+        """`part`, or where the kernel is shared by fusions of several parts, the twin's part that fits `last`."""
+        twins = {component(names[k], depth) for k in (shared or {}).get(kernel_name(e["name"]), ()) if k in names}
+        if len(twins) < 2 or last is None:
+            return part
+        if last in twins:
+            return last
+        side = [p for p in sorted(twins) if p.startswith("update:") == last.startswith("update:")]
+        return side[0] if len(side) == 1 else part
+
     ordered = sorted(filter(counted, _complete(events)), key=lambda e: (e["pid"], e.get("tid"), e.get("ts", 0)))
     parts, before, inherited = {}, {}, collections.Counter()
     for e in ordered:
-        stream, part = (e["pid"], e.get("tid")), own(e)
+        stream = (e["pid"], e.get("tid"))
+        part = twin(e, own(e), before.get(stream))
         if part is None and stream in before and not e["name"].startswith(("Memcpy", "Memset")):
             part = before[stream]
             inherited[part] += 1
@@ -205,7 +244,7 @@ def traced(fn: Callable[[], Any], out: str, top: int = 10, hlo_text: str = "",
         return wall, summarise(events, top), []
     with open(os.path.join(out, "program.hlo.txt"), "w") as f:  # what the kernels' names refer to
         f.write(hlo_text)
-    return wall, summarise(events, top), by_component(events, op_names(hlo_text), depth)
+    return wall, summarise(events, top), by_component(events, op_names(hlo_text), depth, shared_kernels(hlo_text))
 
 
 def print_components(rows: list[dict], wall: float, unit: str = "s") -> None:

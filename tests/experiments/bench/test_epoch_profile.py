@@ -137,3 +137,55 @@ def test_a_compiled_programs_instructions_count_for_their_parts():
     """Every instruction with an op_name, its own or inherited, inside fusions too; those without none."""
     assert tracing.instructions_by_component(HLO) == [("update: Encoder backward", 3),
                                                       ("update: optimiser (Adam)", 2), ("physics", 1)]
+
+
+TWINS = """\
+%fused_pad.1 (p: bf16[5,8]) -> bf16[5,9] {
+  %p = bf16[5,8]{1,0} parameter(0)
+  %c = bf16[] constant(0)
+  ROOT %pad.1 = bf16[5,9]{1,0} pad(%p, %c), padding=0_0x0_1, metadata={op_name="{ACT}"}
+}
+
+%fused_pad.2 (q: bf16[5,8]) -> bf16[5,9] {
+  %q = bf16[5,8]{1,0} parameter(0)
+  %d = bf16[] constant(0)
+  ROOT %pad.2 = bf16[5,9]{1,0} pad(%q, %d), padding=0_0x0_1, metadata={op_name="{ENC}"}
+}
+
+%fused_pad.3 (r: bf16[5,8]) -> bf16[5,9] {
+  %r = bf16[5,8]{1,0} parameter(0)
+  %e = bf16[] constant(1)
+  ROOT %pad.3 = bf16[5,9]{1,0} pad(%r, %e), padding=0_0x0_1, metadata={op_name="{CAM}"}
+}
+
+ENTRY %main (a: bf16[5,8]) -> bf16[5,9] {
+  %a = bf16[5,8]{1,0} parameter(0)
+  %loop_pad_fusion.1 = bf16[5,9]{1,0} fusion(%a), calls=%fused_pad.1, metadata={op_name="{ACT}"}
+  %loop_pad_fusion.2 = bf16[5,9]{1,0} fusion(%a), calls=%fused_pad.2, metadata={op_name="{ENC}"}
+  %loop_pad_fusion.3 = bf16[5,9]{1,0} fusion(%a), calls=%fused_pad.3, metadata={op_name="{CAM}"}
+  %gemm_fusion_dot.4 = bf16[5,9]{1,0} fusion(%a), kind=kCustom, metadata={op_name="{CRITIC}"}
+  ROOT %t = bf16[5,9]{1,0} tuple(%loop_pad_fusion.1)
+}
+""".replace("{ACT}", "jit(epoch)/while/body/acting/Encoder/pad").replace(
+    "{ENC}", "jit(epoch)/update/jvp(Encoder)/pad").replace("{CAM}", "jit(epoch)/camera/pad").replace(
+    "{CRITIC}", "jit(epoch)/update/jvp(Critic)/dot")
+
+
+def test_twin_fusions_share_a_kernel_and_count_for_the_part_around_them():
+    """XLA compiles alike fusions once and launches each under the first one's kernel name: the rollout policy's
+    pad and the update encoder's (same shape and computation, names aside) are one kernel, the camera's pad of
+    another constant is not; each launch counts for the twin's part its neighbours name."""
+    shared = tracing.shared_kernels(TWINS)
+    assert shared == {"loop_pad_fusion_1": ["loop_pad_fusion_1", "loop_pad_fusion_2"],
+                      "loop_pad_fusion_2": ["loop_pad_fusion_1", "loop_pad_fusion_2"]}
+    names = tracing.op_names(TWINS)
+    events = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}}] + [
+        {"ph": "X", "pid": 1, "tid": 7, "ts": float(i), "name": name, "dur": 1.0}
+        for i, name in enumerate(["loop_pad_fusion_3", "loop_pad_fusion_1",  # a rollout: camera, then the policy
+                                  "gemm_fusion_dot_4", "loop_pad_fusion_1",  # an update: critic, then the encoder
+                                  "loop_pad_fusion_1"])]  # after the update's: still the update's
+    rows = {r["component"]: r["events"] for r in tracing.by_component(events, names, shared=shared)}
+    assert rows == {"camera": 1, "policy in rollouts": 1, "update: Critic forward": 1, "update: Encoder forward": 2}
+    # without the twins every launch counts for the name's part
+    rows = {r["component"]: r["events"] for r in tracing.by_component(events, names)}
+    assert rows["policy in rollouts"] == 3
