@@ -66,12 +66,12 @@ def main(argv: list[str] | None = None) -> None:
                         help="the physics engine (RunConfig.physics); preset: the preset's")
     parser.add_argument("--out", default="", help="trace folder (default: runs/profile/ENV-AGENT-SEEDS)")
     args = parser.parse_args(argv)
+    out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
     try:
         validate.check_field("seeds", args.seeds)
-    except ConfigError as err:
+        wall, rows, parts = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant, args.physics)
+    except ConfigError as err:  # a bad seed count, variant or engine for these devices: one line
         raise SystemExit(f"error: {err}") from err
-    out = args.out or os.path.join("runs", "profile", f"{args.env}-{args.agent}-{args.seeds}")
-    wall, rows, parts = profile_epoch(args.env, args.agent, args.seeds, out, args.top, args.variant, args.physics)
     device = jax.devices()[0]
     print(
         f"{args.env} {args.agent} ({args.variant}), {args.seeds} seed(s) on {device.platform} ({device.device_kind}): "

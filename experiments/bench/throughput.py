@@ -206,8 +206,11 @@ def scaling(args: argparse.Namespace) -> None:
         raise SystemExit(f"error: {err}") from err
     rows = []
     for n in args.devices:
-        rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats, args.env_shards,
-                                    args.physics))
+        try:
+            rows.append(sharded_training(args.envs[0], args.agent, args.seeds, n, args.repeats, args.env_shards,
+                                        args.physics))
+        except ConfigError as err:  # e.g. --physics warp without NVIDIA GPUs: one line
+            raise SystemExit(f"error: {err}") from err
         print(json.dumps(rows[-1]), flush=True)
     base = rows[0]
     print(f"\n{args.envs[0]} {args.agent}, {args.seeds} seeds: training throughput by device count\n")

@@ -1,5 +1,6 @@
-"""experiments.bench.epoch_profile: its option checks; experiments.bench.tracing: the trace summary (a synthetic
-trace) and the attribution of kernels to the parts of an epoch (synthetic HLO text and traces)."""
+"""experiments.bench.epoch_profile (and throughput): their option checks; experiments.bench.tracing: the trace
+summary (a synthetic trace) and the attribution of kernels to the parts of an epoch (synthetic HLO text and
+traces)."""
 
 import pytest
 
@@ -189,3 +190,13 @@ def test_twin_fusions_share_a_kernel_and_count_for_the_part_around_them():
     # without the twins every launch counts for the name's part
     rows = {r["component"]: r["events"] for r in tracing.by_component(events, names)}
     assert rows["policy in rollouts"] == 3
+
+
+def test_an_engine_these_devices_cannot_run_is_a_one_line_error():
+    from experiments.bench import throughput
+
+    for main, args in ((bench_profile.main, ["--physics", "warp"]),
+                       (throughput.main, ["--devices", "1", "--seeds", "1", "--physics", "warp"])):
+        with pytest.raises(SystemExit, match=r"^error: --physics warp needs NVIDIA GPUs and warp-lang: this run "
+                                             r"lays out 1 cpu device\(s\); allowed here: jax, auto$"):
+            main(args)
