@@ -23,7 +23,7 @@ import json
 import os
 import re
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import jax
 
@@ -49,19 +49,22 @@ def kernel_name(instruction: str) -> str:
     return re.sub(r"[.\-]", "_", instruction)
 
 
+def _instructions(hlo_text: str) -> Iterator[tuple[str | None, str, str]]:
+    """(computation, instruction name, the rest of its line) of each instruction of a module's HLO text."""
+    computation = None
+    for line in hlo_text.splitlines():
+        if (header := _COMPUTATION.match(line)) is not None:
+            computation = header.group(1)
+        elif (instruction := _INSTRUCTION.match(line)) is not None:
+            yield computation, *instruction.groups()
+
+
 def op_names(hlo_text: str) -> dict[str, str]:
     """{kernel name: op_name} of the instructions of a compiled module's HLO text. An instruction XLA made without
     an op_name (a multi-output fusion, a concatenation it merged) takes the first op_name inside the computation
     it calls, else that of the nearest instruction it reads (followed back through operands without one)."""
     own, calls, operands, first_in = {}, {}, {}, {}
-    computation = None
-    for line in hlo_text.splitlines():
-        if (header := _COMPUTATION.match(line)) is not None:
-            computation = header.group(1)
-            continue
-        if (instruction := _INSTRUCTION.match(line)) is None:
-            continue
-        name, rest = instruction.groups()
+    for computation, name, rest in _instructions(hlo_text):
         body, _, metadata = rest.partition("metadata=")
         if (op := _OP_NAME.search(metadata)) is not None:
             own[name] = op.group(1)
@@ -91,14 +94,8 @@ def shared_kernels(hlo_text: str) -> dict[str, list[str]]:
     names and metadata aside. XLA's GPU backend compiles such fusions once and launches each under the first one's
     kernel name, and a kernel inside a CUDA graph carries no other name in a trace; so a kernel of the rollout's
     policy pass and its twin in the updates (the target encoder on s_{t+1} has the policy's batch) are one name."""
-    bodies, computation, fusions = collections.defaultdict(list), None, {}
-    for line in hlo_text.splitlines():
-        if (header := _COMPUTATION.match(line)) is not None:
-            computation = header.group(1)
-            continue
-        if (instruction := _INSTRUCTION.match(line)) is None:
-            continue
-        name, rest = instruction.groups()
+    bodies, fusions = collections.defaultdict(list), {}
+    for computation, name, rest in _instructions(hlo_text):
         body = _OPERAND.sub("%", rest.split(", metadata=")[0].split(", backend_config=")[0])
         bodies[computation].append(body)
         if (called := _CALLS.search(rest)) is not None and " fusion(" in f" {rest}":
