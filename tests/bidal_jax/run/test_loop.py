@@ -113,6 +113,16 @@ def test_warps_contact_buffer_is_sized_for_one_devices_envs():
     assert loop.physics_worlds(2, TrainConfig(num_envs=16, eval_envs=64), devices=4, shards=2) == 32
 
 
+def test_a_run_on_two_gpus_steps_warp_sized_for_one_gpus_envs(monkeypatch):
+    """`use_physics` asks the env for Warp with the worlds of one device: 8 seeds of 2,560 envs on 2 GPUs."""
+    config = resolve({"env": "nicol_slide", "agent": "multimodal_bidal", "seeds": 8})
+    monkeypatch.setattr(loop.importlib.util, "find_spec", lambda name: object())
+    monkeypatch.setattr(loop, "device_layout", lambda seeds, train, shards: (_devices("gpu", "gpu"), 1))
+    asked = []
+    loop.use_physics(types.SimpleNamespace(use_backend=lambda engine, worlds: asked.append((engine, worlds))), config)
+    assert config.run.physics == "auto" and asked == [("warp", 4 * 2560)]
+
+
 def test_physics_id_follows_the_model_options():
     env = envs_mjx.make("planar_reach", render=False)
     before = env.physics_id
