@@ -5,6 +5,7 @@ second of the camera alone, whole training epochs, and native MuJoCo (`mujoco.ro
     python -m experiments.bench.throughput                       # planar_reach, 64/256/1024 envs
     python -m experiments.bench.throughput --envs ur5_reach nicol_slide --num-envs 64 256
     python -m experiments.bench.throughput --skip-train --json out.json
+    python -m experiments.bench.throughput --envs nicol_slide --agent multimodal_bidal --devices 1 2 --physics warp
 
 One env step is one 0.04 s control period (several physics substeps). Each figure is the
 median of `--repeats` timed runs after a warm-up (compilation excluded); it prints a
