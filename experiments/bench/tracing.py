@@ -154,14 +154,18 @@ def by_component(events: list[dict], names: dict[str, str], depth: int = 0,
         op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
         return component(op, depth) if op else None
 
+    # each shared kernel's twins' parts where they differ, worked out once rather than at each of its launches
+    twin_parts = {kernel: sorted(found) for kernel, group in (shared or {}).items()
+                  for found in [{component(names[k], depth) for k in group if k in names}] if len(found) > 1}
+
     def twin(e: dict, part: str | None, last: str | None) -> str | None:
         """`part`, or where the kernel is shared by fusions of several parts, the twin's part that fits `last`."""
-        twins = {component(names[k], depth) for k in (shared or {}).get(kernel_name(e["name"]), ()) if k in names}
-        if len(twins) < 2 or last is None:
+        twins = twin_parts.get(kernel_name(e["name"]))
+        if twins is None or last is None:
             return part
         if last in twins:
             return last
-        side = [p for p in sorted(twins) if p.startswith("update:") == last.startswith("update:")]
+        side = [p for p in twins if p.startswith("update:") == last.startswith("update:")]
         return side[0] if len(side) == 1 else part
 
     ordered = sorted(filter(counted, _complete(events)), key=lambda e: (e["pid"], e.get("tid"), e.get("ts", 0)))
