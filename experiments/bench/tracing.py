@@ -17,6 +17,7 @@ lowered after `loop.short_source_locations` (as a run's are) has lost those scop
 from __future__ import annotations
 
 import collections
+import functools
 import glob
 import gzip
 import json
@@ -150,13 +151,15 @@ def by_component(events: list[dict], names: dict[str, str], depth: int = 0,
             return e["pid"] in devices
         return not e.get("args", {}).get("hlo_op", "while").startswith(("while", "conditional", "call"))
 
+    part_of = functools.cache(lambda op: component(op, depth))  # a trace launches each kernel many times
+
     def own(e: dict) -> str | None:
         op = names.get(kernel_name(e["name"])) or names.get(kernel_name(e.get("args", {}).get("hlo_op", "")))
-        return component(op, depth) if op else None
+        return part_of(op) if op else None
 
     # each shared kernel's twins' parts where they differ, worked out once rather than at each of its launches
     twin_parts = {kernel: sorted(found) for kernel, group in (shared or {}).items()
-                  for found in [{component(names[k], depth) for k in group if k in names}] if len(found) > 1}
+                  for found in [{part_of(names[k]) for k in group if k in names}] if len(found) > 1}
 
     def twin(e: dict, part: str | None, last: str | None) -> str | None:
         """`part`, or where the kernel is shared by fusions of several parts, the twin's part that fits `last`."""
