@@ -91,9 +91,9 @@ class NetworkConfig:
         "matmul: 3-4× faster than 'native' on XLA:CPU, about 5× on one H100), 'taps' (a matmul per kernel tap, "
         "summed: no patch tensor), 'native' (XLA's convolution, cuDNN on a GPU; under the seeds' vmap a grouped "
         "convolution), 'stacked' (XLA's convolution of the seeds stacked along the channels with a "
-        "block-diagonal kernel: one dense convolution for all seeds) or 'banded' (groups of whole rows times "
-        "band matrices built from the kernel: one dense matmul per layer, no taps copied); the same function and "
-        "parameters, so runs of any compare and resume alike",
+        "block-diagonal kernel: one dense convolution for all seeds) or 'banded' (each output row's window of "
+        "whole input rows times band matrices built from the kernel: one dense matmul per layer, no taps "
+        "copied); the same function and parameters, so runs of any compare and resume alike",
         one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(

@@ -66,26 +66,38 @@ def _width_bands(kernel: jax.Array, stride: int, width: int) -> jax.Array:
     return bands.reshape(k, width * channels, out_w * features)
 
 
-def _banded_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    """`_conv` as one dense matmul: the rows are cut into G groups of `stride` (a reshape), each group is
-    multiplied by the band matrices of the ⌈k/stride⌉ places it takes in an output row's window (`_width_bands`,
-    side by side: one matmul [B·G, stride·width·C] @ [stride·width·C, ⌈k/stride⌉·out_w·F]), and output row y is
-    Σ_g (product of group y+g, place g). No transpose and no copy of taps: the duplication and the zeros of the
-    band cost arithmetic instead (about 6× that of the convolution for the vision branch), which a GPU's matrix
-    units have to spare and its memory has not."""
+def _window_rows(x: jax.Array, k: int, stride: int, top: int, out_h: int) -> jax.Array:
+    """The k input rows of each output row's window side by side: [B, out_h, k·W·C] of x [B, H, W·C] padded with
+    `top` zero rows above and as many below as the windows reach; the zero rows are written into the windows, the
+    padded frame is never built."""
+    batch, height, row = x.shape
+    zero = jnp.zeros((batch, 1, row), x.dtype)
+    blocks = []
+    for dy in range(k):
+        rows = [dy + stride * o - top for o in range(out_h)]  # the input row of each window's place dy
+        inside = [r for r in rows if 0 <= r < height]
+        pieces = [zero] * sum(r < 0 for r in rows) + [x[:, inside[0] : inside[-1] + 1 : stride]] * bool(inside)
+        pieces += [zero] * sum(r >= height for r in rows)
+        blocks.append(jnp.concatenate(pieces, axis=1) if len(pieces) > 1 else pieces[0])
+    return jnp.concatenate(blocks, axis=-1)
+
+
+def _banded_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, int, int, int]) -> jax.Array:
+    """`_conv` of x [B, H, W, C] zero-padded by `pads` (top, bottom, left, right) as one dense matmul: each output
+    row's window of k input rows, side by side (`_window_rows`), times the band matrices of the k kernel rows
+    stacked (`_width_bands`): [B·out_h, k·W·C] @ [k·W·C, out_w·F], the output rows in order. The padding costs no
+    copy of the frame: its zero rows are written into the windows, and the band rows of padded columns are dropped.
+    No transpose and no copy of taps: the band's zeros and the windows' overlap cost arithmetic instead (about 6×
+    that of the convolution for the vision branch), which a GPU's matrix units have to spare and its memory has
+    not."""
     batch, height, width, channels = x.shape
     k, features = kernel.shape[0], kernel.shape[-1]
-    out_h, out_w = (height - k) // stride + 1, (width - k) // stride + 1
-    places = -(-k // stride)
-    groups = out_h + places - 1
-    used_rows = (out_h - 1) * stride + k
-    x = jnp.pad(x[:, :used_rows], ((0, 0), (0, stride * groups - used_rows), (0, 0), (0, 0)))
-    bands = jnp.pad(_width_bands(kernel, stride, width), ((0, stride * places - k), (0, 0), (0, 0)))
-    bands = bands.reshape(places, stride * width * channels, out_w * features).transpose(1, 0, 2)
-    products = x.reshape(batch, groups, -1) @ bands.reshape(stride * width * channels, -1)
-    products = products.reshape(batch, groups, places, out_w * features)
-    y = sum(products[:, g : g + out_h, g] for g in range(places))
-    return y.reshape(batch, out_h, out_w, features)
+    top, bottom, left, right = pads
+    out_h = (height + top + bottom - k) // stride + 1
+    bands = _width_bands(kernel, stride, width + left + right)[:, left * channels : (left + width) * channels]
+    windows = _window_rows(x.reshape(batch, height, width * channels), k, stride, top, out_h)
+    y = windows @ bands.reshape(k * width * channels, -1)
+    return y.reshape(batch, out_h, -1, features)
 
 
 def _batched(axis_size: int, in_batched: list, *args: jax.Array) -> list[jax.Array]:
@@ -135,8 +147,8 @@ class PatchConv(nn.Module):
     the k² strided slices into patches [B, H', W', k²C] and multiplies them by the kernel once; "taps" multiplies
     each slice by its kernel tap and sums, with no patch tensor; "native" is XLA's convolution op (cuDNN on a GPU),
     which under the seeds' `vmap` becomes a grouped convolution; "stacked" is XLA's convolution with the vmapped
-    seeds stacked along the channels (`seed_stacked_conv`); "banded" multiplies groups of whole rows by band
-    matrices built from the kernel (`_banded_conv`).
+    seeds stacked along the channels (`seed_stacked_conv`); "banded" multiplies each output row's window of whole
+    input rows by band matrices built from the kernel (`_banded_conv`).
     It computes in the dtype of `x` (float32 parameters cast to it):
     with bfloat16 input its patches, matmul and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
@@ -152,20 +164,23 @@ class PatchConv(nn.Module):
         chex.assert_rank(x, 4)
         _, height, width, channels = x.shape
         k, s = self.kernel, self.stride
+        pads = (0, 0, 0, 0)
         if self.padding == "SAME":
             out_h, out_w = -(-height // s), -(-width // s)
             pad_h, pad_w = max((out_h - 1) * s + k - height, 0), max((out_w - 1) * s + k - width, 0)
-            x = jnp.pad(x, ((0, 0), (pad_h // 2, pad_h - pad_h // 2), (pad_w // 2, pad_w - pad_w // 2), (0, 0)))
+            pads = (pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2)
         else:
             out_h, out_w = (height - k) // s + 1, (width - k) // s + 1
         kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features)).astype(x.dtype)
         bias = self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
+        if self.impl == "banded":  # pads the frame inside its windows (`_banded_conv`)
+            return _banded_conv(x, kernel, s, pads) + bias
+        if self.padding == "SAME":
+            x = jnp.pad(x, ((0, 0), pads[:2], pads[2:], (0, 0)))
         if self.impl == "native":  # x is padded already: a VALID convolution gives the out_h × out_w map
             return _conv(x, kernel, s) + bias
         if self.impl == "stacked":
             return seed_stacked_conv(s)(x, kernel) + bias
-        if self.impl == "banded":
-            return _banded_conv(x, kernel, s) + bias
         taps = [x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
                 for dy in range(k) for dx in range(k)]
         if self.impl == "taps":  # Σ over the k² taps of (strided slice) @ kernel[dy, dx]: no patch tensor
