@@ -8,13 +8,30 @@ resume it drops the rows written after the checkpoint the run continues from.
 from __future__ import annotations
 
 import csv
+import importlib
 import io
 import os
+import sys
 
 import numpy as np
-from tensorboardX import SummaryWriter
 
 from bidal_jax.run.runfiles import number, read_csv, write_atomic
+
+
+def _import_without_torch(module: str):
+    """`module` imported with PyTorch hidden unless it is imported already: tensorboardX imports torch where it is
+    installed only to accept torch tensors, which these scalars never are, and that import costs seconds of a run's
+    start (3.4 s on a GPU machine with torch installed, docs/results.md "The main command")."""
+    if "torch" in sys.modules:
+        return importlib.import_module(module)
+    sys.modules["torch"] = None  # `import torch` raises ImportError while this entry is None
+    try:
+        return importlib.import_module(module)
+    finally:
+        del sys.modules["torch"]
+
+
+SummaryWriter = _import_without_torch("tensorboardX").SummaryWriter
 
 
 class MetricsLog:
