@@ -76,7 +76,9 @@ def _window_rows(x: jax.Array, k: int, stride: int, top: int, out_h: int) -> jax
     for dy in range(k):
         rows = [dy + stride * o - top for o in range(out_h)]  # the input row of each window's place dy
         inside = [r for r in rows if 0 <= r < height]
-        pieces = [zero] * sum(r < 0 for r in rows) + [x[:, inside[0] : inside[-1] + 1 : stride]] * bool(inside)
+        pieces = [zero] * sum(r < 0 for r in rows)
+        if inside:
+            pieces.append(x[:, inside[0] : inside[-1] + 1 : stride])
         pieces += [zero] * sum(r >= height for r in rows)
         blocks.append(jnp.concatenate(pieces, axis=1) if len(pieces) > 1 else pieces[0])
     return jnp.concatenate(blocks, axis=-1)
@@ -87,9 +89,8 @@ def _banded_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, 
     row's window of k input rows, side by side (`_window_rows`), times the band matrices of the k kernel rows
     stacked (`_width_bands`): [B·out_h, k·W·C] @ [k·W·C, out_w·F], the output rows in order. The padding costs no
     copy of the frame: its zero rows are written into the windows, and the band rows of padded columns are dropped.
-    No transpose and no copy of taps: the band's zeros and the windows' overlap cost arithmetic instead (about 6×
-    that of the convolution for the vision branch), which a GPU's matrix units have to spare and its memory has
-    not."""
+    No transpose and no copy of taps: the band's zeros and the windows' overlap cost arithmetic instead (several
+    times that of the convolution), which a GPU's matrix units have to spare and its memory has not."""
     batch, height, width, channels = x.shape
     k, features = kernel.shape[0], kernel.shape[-1]
     top, bottom, left, right = pads
