@@ -26,7 +26,7 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
 run dir, new/resume/done/stale) and its estimated time on one GPU running the runs one after another
-(`SECONDS`, measured from the grid's run folders in results/curves), and writes nothing. Otherwise the runs
+(`grid.SECONDS`, measured from the grid's run folders in results/curves), and writes nothing. Otherwise the runs
 train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run
 the same command again; a run whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's
 checkpoints), is at its epochs is skipped, an interrupted one resumes from its latest checkpoint (with an empty
@@ -77,24 +77,6 @@ from experiments.paper.protocol import DEFAULT_SEEDS, EPOCHS, SEEDS, TASKS  # th
 PROG = "python -m experiments.paper.curves"
 STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
-# estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on one GPU, per
-# task and agent kind. NICOL image (any agent that sees images): multimodal_bidal with today's preset (banded convs
-# in bfloat16, MuJoCo Warp physics) on one H100, `experiments.bench.sweep` from a cold start, in results/scaling
-# (nicol_slide-multimodal_bidal-cold.jsonl to 0.9, nicol_lift-multimodal_bidal-warp.jsonl for 3 epochs): the mean
-# step of `process_seconds` per epoch; compile: the first epoch's `variant_seconds` less one epoch, which holds
-# Warp's kernel compilation into an empty kernel cache (about 107 s of nicol_slide's 192), paid once per machine and
-# model rather than per run: an over-estimate for a grid. visual_bidal's nicol_lift epoch takes 0.3 s more
-# (nicol_lift-visual_bidal-warp.jsonl). NICOL proprio: the grid's own H100 runs (MJX physics),
-# results/curves/<task>/proprio_baseline/metrics.csv
-# (seconds per epoch: `wall_time`'s mean step per epoch; compile: the first epoch's `wall_time_with_compile` less
-# its `wall_time`). Reaching: their config.json names no machine and their metrics.csv has no compile column; their
-# slowest agent of each kind, with 60 s of compiling assumed.
-SECONDS = {
-    "planar_reach": {"image": (10.2, 60.0), "proprio": (0.9, 60.0)},
-    "ur5_reach": {"image": (6.7, 60.0), "proprio": (0.6, 60.0)},
-    "nicol_slide": {"image": (6.4, 192.3), "proprio": (10.7, 128.0)},
-    "nicol_lift": {"image": (19.7, 117.0), "proprio": (12.4, 148.0)},
-}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -156,40 +138,10 @@ def make_arms(
     return arms
 
 
-def estimate(arm: Arm, status: grid.Status) -> float:
-    """Estimated seconds to train what is left of the run (`SECONDS`) at its `status`: its compilation and its
-    remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is moved away)."""
-    state, step, _ = status
-    if state == "done":
-        return 0.0
-    kind = "image" if arm.config.agent.uses_image else "proprio"
-    per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
-    per_epoch *= arm.config.run.seeds / DEFAULT_SEEDS  # measured at 5 seeds; more cost at most in proportion
-    return compile_s + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
-
-
-def duration(seconds: float) -> str:
-    """Seconds, with minutes or hours: "300 s (5.0 min)", "8,720 s (2.4 h)"."""
-    longer = f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.1f} min"
-    return f"{seconds:,.0f} s ({longer})"
-
-
 def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
-    """The plan: one line per run with its estimated time, then the estimated total, and the stale runs' count."""
-    statuses = [grid.status(arm, envs[arm.name].physics_id) for arm in arms]
-    seconds = [estimate(arm, status) for arm, status in zip(arms, statuses)]
-    lines = [f"plan: {len(arms)} runs"]
-    lines += [f"{grid.plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s" for arm, s in zip(arms, seconds)]
-    lines.append(
-        f"estimated time: {duration(sum(seconds))} on one GPU running the runs one after another "
-        "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
-        "included)"
-    )
-    stale = sum(status.state == "stale" for status in statuses)
-    if stale:
-        lines.append(f"stale: {stale} of {len(arms)} runs; training refuses them until their folders are moved away "
-                     "or another --out is given (the estimate counts them from the start)")
-    return "\n".join(lines)
+    """The plan: one line per run with its estimated time (`grid.estimated_plan`), then the estimated total, and the
+    stale runs' count."""
+    return grid.estimated_plan(arms, envs, f"plan: {len(arms)} runs", named=False)
 
 
 def seconds(run: dict) -> str:
@@ -272,7 +224,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         "",
         *stale_note(stale, len(runs)),
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
-        f"Total wall time of the runs: {duration(total)}.",
+        f"Total wall time of the runs: {grid.duration(total)}.",
         "",
         grid.gaps(arms, runs),
         "",

@@ -19,7 +19,8 @@ the mean over runs; and the command that regenerates it),
 `curves.png` and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
 `--report` trains nothing and writes only these, from the run folders (results/ keeps no
 checkpoints: training again there would start the runs afresh). `--dry-run` prints the plan, each
-program with its state (new, resume, done or stale; `grid.plan`), and trains and writes nothing.
+program with its state (new, resume, done or stale) and its estimated time (`grid.estimated_plan`), and trains
+and writes nothing.
 
 Resumable: a finished agent is skipped, an interrupted one resumed from its latest
 checkpoint, and a stale one (`grid.stale`: made on other physics or with another config) refused
@@ -226,7 +227,7 @@ def main(argv: list[str] | None = None) -> int:
           f"each ({programs}), {given['epochs']} epochs, into {args.out}")
     arms = make_arms(args.agents, kappas, args.out, given, args.runs)
     envs = grid.make_envs(arms)
-    code = report_or_error(lambda: print(grid.plan(arms, envs), flush=True))  # a damaged run folder: exit 2
+    code = report_or_error(lambda: print(grid.estimated_plan(arms, envs), flush=True))  # a damaged run folder: exit 2
     if code:
         return code
     if args.dry_run:

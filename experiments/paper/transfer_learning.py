@@ -45,7 +45,7 @@ scratch arm does not need the source), then `--arms transfer`, which refuses to 
 unfinished (`refuse_unfinished_source`); any of them writes the results
 of whatever runs have epochs, and `--arms none` writes only those (e.g. from run folders
 whose checkpoints were deleted). `--dry-run` prints the plan, each run with its state (new, resume,
-done or stale; `grid.plan`), and trains and writes nothing.
+done or stale) and its estimated time (`grid.estimated_plan`), and trains and writes nothing.
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line), or a run folder with a damaged file (one line naming it; the experiment stops on it); 3 diverged; 4 the
@@ -271,7 +271,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return cli.exit_code(err)
     envs = grid.make_envs(arms)
     try:
-        print(grid.plan(arms, envs), flush=True)
+        print(grid.estimated_plan(arms, envs), flush=True)
     except ConfigError as err:  # a damaged run folder (`report.RunError`)
         return cli.exit_code(err)
     if args.dry_run:

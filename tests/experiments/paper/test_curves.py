@@ -95,7 +95,7 @@ def test_the_nicol_proprio_estimates_are_the_grids_measured_times(task):
     wall, epoch = ([float(row[key]) for row in rows] for key in ("wall_time", "epoch"))
     per_epoch = (wall[-1] - wall[0]) / (epoch[-1] - epoch[0])
     compile_s = float(rows[0]["wall_time_with_compile"]) - wall[0]
-    assert curves.SECONDS[task]["proprio"] == pytest.approx((per_epoch, compile_s), abs=0.5)
+    assert grid.SECONDS[task]["proprio"] == pytest.approx((per_epoch, compile_s), abs=0.5)
 
 
 def test_the_nicol_image_estimates_are_todays_measured_times():
@@ -108,7 +108,7 @@ def test_the_nicol_image_estimates_are_todays_measured_times():
         assert {row["engine"] for row in rows} == {"warp"}
         steps = rows[-1]["process_seconds"] - rows[0]["process_seconds"]
         per_epoch = steps / (rows[-1]["epoch"] - rows[0]["epoch"])
-        assert curves.SECONDS[task]["image"] == pytest.approx((per_epoch, rows[0]["variant_seconds"] - per_epoch),
+        assert grid.SECONDS[task]["image"] == pytest.approx((per_epoch, rows[0]["variant_seconds"] - per_epoch),
                                                               abs=0.5)
 
 

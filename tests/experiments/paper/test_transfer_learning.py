@@ -110,7 +110,8 @@ def test_dry_run_prints_each_runs_state_and_trains_and_writes_nothing(tmp_path, 
     printed = capsys.readouterr().out
     assert no_nicol == [] and sorted(p.relative_to(out) for p in out.rglob("*")) == before
     assert f"{out}/source [done]" in printed and f"{out}/transfer [resume, checkpoint at epoch 1]" in printed
-    assert f"{out}/scratch [new]" in printed and printed.endswith("dry run: nothing trained or written\n")
+    assert f"{out}/scratch [new]; estimated " in printed and printed.endswith("dry run: nothing trained or written\n")
+    assert f"{out}/source [done]; estimated 0 s" in printed and "estimated time: " in printed
 
 
 def test_arms_trains_only_the_named_runs_and_tabulates_what_exists(tmp_path, no_nicol, fake_run):
