@@ -14,7 +14,8 @@ or written), or a run directory in use (one `error: ...` line); 3 diverged; 4 th
 (no room for a checkpoint, or a write failed); 130 and 143 stopped by SIGINT and SIGTERM (a
 checkpoint was saved). Each run locks its own directory while it trains (`bidal_jax.run.rundir`),
 not the experiment's folder: two commands may share the folder (e.g. `experiments.paper.transfer_learning
---arms source` and `--arms scratch`), but a run that another process trains is refused (exit 2).
+--arms source` and `--arms scratch`), but a run that another process trains is refused (exit 2). Every
+experiment's plan (`estimated_plan`) gives each run's estimated time on one GPU from measured epochs (`SECONDS`).
 """
 
 from __future__ import annotations
