@@ -247,7 +247,7 @@ def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> 
     warp-lang imports (`RunConfig.physics` auto): on one H100 a nicol_slide multimodal_bidal epoch takes 6.4 s
     against 10.5 and a nicol_lift one 19.7 s against 25.4 (docs/results.md, "MJX-JAX against MuJoCo Warp"); a
     checkpoint every 25 epochs instead of 5, since one holds the replay buffer (7 GB of frames for 5 seeds) and a
-    save took about 14 s on one H100, two slide epochs (docs/results.md, "What a checkpoint costs"); the CPU-sized
+    save took about 13 s on one H100, two slide epochs (docs/results.md, "What a checkpoint costs"); the CPU-sized
     tasks keep the defaults."""
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
              "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
