@@ -267,10 +267,10 @@ SECONDS = {
 SECONDS["nicol_lift_reduced"] = SECONDS["nicol_lift"]  # the transfer target: nicol_lift's preset, not timed apart
 
 
-def estimate(arm: Arm, status: Status) -> float:
-    """Estimated seconds to train what is left of the run (`SECONDS`) at its `status`: its compilation and its
-    remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is moved away)."""
-    state, step, _ = status
+def estimate(arm: Arm, progress: Status) -> float:
+    """Estimated seconds to train what is left of the run (`SECONDS`) at its `progress` (`status`): its compilation
+    and its remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is moved away)."""
+    state, step, _ = progress
     if state == "done":
         return 0.0
     kind = "image" if arm.config.agent.uses_image else "proprio"
@@ -289,7 +289,7 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
     """`heading`, then one `plan_line` per run (after its name when `named`) with its estimated time (`estimate`),
     then the estimated total and the stale runs' count."""
     statuses = [status(arm, envs[arm.name].physics_id) for arm in arms]
-    seconds = [estimate(arm, state) for arm, state in zip(arms, statuses)]
+    seconds = [estimate(arm, progress) for arm, progress in zip(arms, statuses)]
     lines = [heading]
     lines += [f"{f'{arm.name}: ' if named else ''}{plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s"
               for arm, s in zip(arms, seconds)]
@@ -298,7 +298,7 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
         "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
         "included)"
     )
-    stale_runs = sum(state.state == "stale" for state in statuses)
+    stale_runs = sum(progress.state == "stale" for progress in statuses)
     if stale_runs:
         lines.append(f"stale: {stale_runs} of {len(arms)} runs; training refuses them until their folders are moved "
                      "away or another --out is given (the estimate counts them from the start)")
