@@ -26,7 +26,7 @@ unchanged), a labelled variant the paper does not use, written to results/curves
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
 run dir, new/resume/done/stale) and its estimated time on one GPU running the runs one after another
-(`grid.SECONDS`, measured from the grid's run folders in results/curves), and writes nothing. Otherwise the runs
+(`grid.SECONDS`, measured epochs in results/scaling/epochs), and writes nothing. Otherwise the runs
 train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run
 the same command again; a run whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's
 checkpoints), is at its epochs is skipped, an interrupted one resumes from its latest checkpoint (with an empty

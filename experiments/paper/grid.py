@@ -27,7 +27,17 @@ import os
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
-from bidal_jax.config import CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, recorded, resolve
+from bidal_jax.config import (
+    AGENTS,
+    CONFIG_CLASSES,
+    Config,
+    ConfigError,
+    NetworkConfig,
+    TrainConfig,
+    option,
+    recorded,
+    resolve,
+)
 from bidal_jax.run import checkpoint, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
@@ -247,24 +257,29 @@ def plan_line(arm: Arm, env) -> str:
 
 
 # estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on one GPU, per
-# task and agent kind. NICOL image (any agent that sees images): multimodal_bidal with today's preset (banded convs
-# in bfloat16, MuJoCo Warp physics) on one H100, `experiments.bench.sweep` from a cold start, in results/scaling
-# (nicol_slide-multimodal_bidal-cold.jsonl to 0.9, nicol_lift-multimodal_bidal-warp.jsonl for 3 epochs): the mean
-# step of `process_seconds` per epoch; compile: the first epoch's `variant_seconds` less one epoch, which holds
-# Warp's kernel compilation into an empty kernel cache (about 107 s of nicol_slide's 192), paid once per machine and
-# model rather than per run: an over-estimate for a grid. visual_bidal's nicol_lift epoch takes 0.3 s more
-# (nicol_lift-visual_bidal-warp.jsonl). NICOL proprio: the grid's own H100 runs (MJX physics),
-# results/curves/<task>/proprio_baseline/metrics.csv
-# (seconds per epoch: `wall_time`'s mean step per epoch; compile: the first epoch's `wall_time_with_compile` less
-# its `wall_time`). Reaching: their config.json names no machine and their metrics.csv has no compile column; their
-# slowest agent of each kind, with 60 s of compiling assumed.
+# task and agent kind (`kind`): `python -m experiments.bench.sweep --env TASK --agent AGENT --seeds 5 --epochs 3`,
+# one process each, from an empty compilation cache, in results/scaling/epochs/TASK-AGENT.jsonl: multimodal_bidal
+# for "image" (every agent that sees images where no "image_baseline" is given), multimodal_baseline for
+# "image_baseline" (the baselines encode one frame fewer a sample in an update), proprio_baseline for "proprio". The
+# reaching tasks ran on one H100 with MJX-JAX physics, the NICOL tasks on one H200 with MuJoCo Warp. Per epoch: the
+# mean step of `process_seconds`; compile: the first epoch's `variant_seconds` less one epoch. The first NICOL run on
+# each machine (nicol_slide proprio_baseline, nicol_lift multimodal_baseline) compiled Warp's kernels into an empty
+# kernel cache, about 105 s that a grid pays once per machine and model: an over-estimate there.
 SECONDS = {
-    "planar_reach": {"image": (10.2, 60.0), "proprio": (0.9, 60.0)},
-    "ur5_reach": {"image": (6.7, 60.0), "proprio": (0.6, 60.0)},
-    "nicol_slide": {"image": (6.4, 192.3), "proprio": (10.7, 128.0)},
-    "nicol_lift": {"image": (19.7, 117.0), "proprio": (12.4, 148.0)},
+    "planar_reach": {"image": (1.12, 55.5), "proprio": (0.66, 33.8)},
+    "ur5_reach": {"image": (1.11, 55.1), "proprio": (0.59, 29.5)},
+    "nicol_slide": {"image": (5.96, 85.6), "image_baseline": (4.75, 72.4), "proprio": (2.11, 149.4)},
+    "nicol_lift": {"image": (17.68, 81.2), "image_baseline": (13.06, 181.6), "proprio": (4.69, 41.6)},
 }
 SECONDS["nicol_lift_reduced"] = SECONDS["nicol_lift"]  # the transfer target: nicol_lift's preset, not timed apart
+
+
+def kind(task: str, agent: str) -> str:
+    """The `SECONDS` entry of `agent` on `task`: "proprio" for an agent without images; "image_baseline" for a
+    baseline with images where the task has one measured; "image" otherwise."""
+    if not AGENTS[agent].uses_image:
+        return "proprio"
+    return "image_baseline" if agent.endswith("_baseline") and "image_baseline" in SECONDS[task] else "image"
 
 
 def estimate(arm: Arm, progress: Status) -> float:
@@ -273,8 +288,7 @@ def estimate(arm: Arm, progress: Status) -> float:
     state, step, _ = progress
     if state == "done":
         return 0.0
-    kind = "image" if arm.config.agent.uses_image else "proprio"
-    per_epoch, compile_s = SECONDS[arm.given["env"]][kind]
+    per_epoch, compile_s = SECONDS[arm.given["env"]][kind(arm.given["env"], arm.given["agent"])]
     per_epoch *= arm.config.run.seeds / DEFAULT_SEEDS  # measured at 5 seeds; more cost at most in proportion
     return compile_s + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
 

@@ -75,41 +75,38 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
             )
     assert (
         f"nicol_lift visual_bidal, 10 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
-        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 4,057 s"  # 117.0 s + 100 × 19.7 s × 10 / 5
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 3,617 s"  # 81.2 s + 100 × 17.68 s × 10 / 5
     ) in lines
     assert (
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 150 epochs × 8,000 = 1,200,000 env steps per "
-        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 150 s"
+        f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 118 s"  # 29.5 s + 150 × 0.59 s
     ) in lines
-    # (150 + 4 × 1,080) + (150 + 4 × 1,065) + (1,198 + 4 × 832) + (2,628 + 4 × 4,057): nicol_lift's 10 seeds
-    assert "estimated time: 32,263 s (9.0 h) on one GPU running the runs one after another" in printed
+    # the reaching tasks (1 + 4 agents), then (proprio, 2 baselines and 2 BidAL agents) on nicol_slide and, at
+    # 10 seeds, nicol_lift: (100 + 4 × 167.5) + (118 + 4 × 221.6) + (360.4 + 2 × 547.4 + 2 × 681.6)
+    # + (979.6 + 2 × 2,793.6 + 2 × 3,617.2)
+    assert "estimated time: 18,394 s (5.1 h) on one GPU running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
-@pytest.mark.parametrize("task", ["nicol_slide", "nicol_lift"])
-def test_the_nicol_proprio_estimates_are_the_grids_measured_times(task):
-    """`SECONDS` of the NICOL proprio runs are those the grid's own H100 runs in results/curves recorded, so the
-    estimate follows the run folders, not a copied figure."""
-    with open(os.path.join(REPO, "results", "curves", task, "proprio_baseline", "metrics.csv")) as f:
-        rows = list(csv.DictReader(f))
-    wall, epoch = ([float(row[key]) for row in rows] for key in ("wall_time", "epoch"))
-    per_epoch = (wall[-1] - wall[0]) / (epoch[-1] - epoch[0])
-    compile_s = float(rows[0]["wall_time_with_compile"]) - wall[0]
-    assert grid.SECONDS[task]["proprio"] == pytest.approx((per_epoch, compile_s), abs=0.5)
-
-
-def test_the_nicol_image_estimates_are_todays_measured_times():
-    """`SECONDS` of the NICOL image runs are today's preset's measurements in results/scaling: cold sweeps of
-    multimodal_bidal, their epochs' `process_seconds` (nicol_slide to 0.9, nicol_lift for 3 epochs)."""
-    for task, name in (("nicol_slide", "nicol_slide-multimodal_bidal-cold"),
-                       ("nicol_lift", "nicol_lift-multimodal_bidal-warp")):
-        with open(os.path.join(REPO, "results", "scaling", f"{name}.jsonl")) as f:
+@pytest.mark.parametrize("task", TASKS)
+def test_the_estimates_are_the_measured_epochs_in_results(task):
+    """Each `SECONDS` entry is its sweep's in results/scaling/epochs (5 seeds, 3 epochs): the mean step of
+    `process_seconds` per epoch, and the first epoch's `variant_seconds` less one epoch, so the estimate follows
+    the measurements, not copied figures."""
+    measured = {"image": "multimodal_bidal", "image_baseline": "multimodal_baseline", "proprio": "proprio_baseline"}
+    for kind, seconds in grid.SECONDS[task].items():
+        with open(os.path.join(REPO, "results", "scaling", "epochs", f"{task}-{measured[kind]}.jsonl")) as f:
             rows = [json.loads(line) for line in f]
-        assert {row["engine"] for row in rows} == {"warp"}
-        steps = rows[-1]["process_seconds"] - rows[0]["process_seconds"]
-        per_epoch = steps / (rows[-1]["epoch"] - rows[0]["epoch"])
-        assert grid.SECONDS[task]["image"] == pytest.approx((per_epoch, rows[0]["variant_seconds"] - per_epoch),
-                                                              abs=0.5)
+        assert {row["engine"] for row in rows} == {"warp" if task.startswith("nicol") else "jax"}
+        assert [row["epoch"] for row in rows] == [1, 2, 3] and {row["variant"] for row in rows} == {"preset"}
+        per_epoch = (rows[-1]["process_seconds"] - rows[0]["process_seconds"]) / 2
+        assert seconds == pytest.approx((per_epoch, rows[0]["variant_seconds"] - per_epoch), abs=0.05)
+
+
+def test_each_agent_takes_its_kinds_estimate():
+    assert [grid.kind("nicol_lift", agent) for agent in config_lib.AGENTS] == [
+        "proprio", "image_baseline", "image_baseline", "image", "image"]
+    assert {grid.kind("planar_reach", agent) for agent in config_lib.AGENTS if agent != "proprio_baseline"} == {"image"}
 
 
 def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(tmp_path, no_nicol, fake_run, capsys):
@@ -127,9 +124,9 @@ def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(t
     printed = capsys.readouterr().out
     assert no_nicol == []
     assert "[done]; estimated 0 s" in printed
-    # 60 s compile + 2 epochs × 10.2 s at 5 seeds, × 2 / 5 at SMALL's 2 seeds
-    assert "[resume, checkpoint at epoch 1]; estimated 68 s" in printed
-    assert "[new]; estimated 72 s" in printed
+    # 55.5 s compile + 2 epochs × 1.12 s at 5 seeds, × 2 / 5 at SMALL's 2 seeds; a new run: 3 epochs
+    assert "[resume, checkpoint at epoch 1]; estimated 56 s" in printed
+    assert "[new]; estimated 57 s" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 0
     assert no_nicol == [
         ("prepare", interrupted, True, False),
@@ -335,8 +332,8 @@ def test_training_refuses_stale_runs_before_any_trains(tmp_path, no_nicol, fake_
     before = {d: sorted(os.walk(d)) for d in (old, other)}
     assert curves.main([*SMALL, "--out", str(out), "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert f"{old} [stale: trained on other physics]; estimated 72 s" in printed  # counted from the start
-    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 72 s" in printed
+    assert f"{old} [stale: trained on other physics]; estimated 57 s" in printed  # counted from the start
+    assert f"{other} [stale: config differs: num_envs 8 → 16]; estimated 57 s" in printed
     assert "stale: 2 of 3 runs; training refuses them" in printed
     assert curves.main([*SMALL, "--out", str(out)]) == 2
     assert no_nicol == []  # the first run, new, was not trained either

@@ -53,8 +53,8 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
     assert lines[1:] == [
         "plan:",
         "proprio_baseline: planar_reach proprio_baseline, 6 seed(s), exploration starts 0; 2 epochs × 200 = 400 env "
-        f"steps per seed in {out}/proprio_baseline [new]; estimated 62 s",  # 60 s + 2 × 0.9 s × 6 / 5
-        "estimated time: 62 s (1.0 min) on one GPU running the runs one after another (an estimate from measured "
+        f"steps per seed in {out}/proprio_baseline [new]; estimated 35 s",  # 33.8 s + 2 × 0.66 s × 6 / 5
+        "estimated time: 35 s (0.6 min) on one GPU running the runs one after another (an estimate from measured "
         "5-seed programs of the default sizes, in proportion to the seeds, compilation included)",
         "dry run: nothing trained or written",
     ]
