@@ -10,8 +10,10 @@ A manager keeps the latest two checkpoints and the best one by evaluation succes
 Crash safety: Orbax writes each step to `<epoch>.orbax-checkpoint-tmp/` and renames it
 when complete, so a process killed at any moment (even mid-save) leaves the previous
 checkpoint intact; the step listing ignores unfinished temporary directories and a
-writing `manager` deletes them. A save that fails (e.g. the disk is full) deletes its own at once;
-saves are synchronous (the loop waits for each anyway): a failure is raised by `save` itself.
+writing `manager` deletes them. A save that fails (e.g. the disk is full) deletes its own at once
+and raises from `save`. `save_in_background` saves a copy of the state made on its devices in a
+thread, so that training goes on while it is written; its failure is raised where it is waited for
+(`Pending.wait`: the loop's next save, or the run's end).
 Damage is detected, never restored silently: Orbax and
 TensorStore reject truncated or missing files, and the digest catches flipped bytes,
 which they would load without complaint. Every failure is a `CheckpointError` whose
@@ -36,6 +38,7 @@ import zlib
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 from etils import epath
@@ -131,6 +134,61 @@ def save(
         if multihost.is_main():
             remove_unfinished(str(mngr.directory), step)
         raise
+
+
+@jax.jit
+def _copy(tree: Any) -> Any:
+    """A copy of `tree`'s arrays on their devices (the same shardings), which the caller may then donate."""
+    return jax.tree.map(jnp.copy, tree)
+
+
+def _copy_if_room(state: Any) -> Any | None:
+    """`_copy(state)`, or None where its devices have no room for it."""
+    try:
+        return _copy(state)
+    except jax.errors.JaxRuntimeError as err:
+        if "RESOURCE_EXHAUSTED" not in str(err):
+            raise
+        return None
+
+
+@dataclasses.dataclass
+class Pending:
+    """A checkpoint being written by `save_in_background`: its step, its thread and what the thread raised."""
+
+    step: int
+    thread: threading.Thread | None = None
+    raised: list[BaseException] = dataclasses.field(default_factory=list)
+
+    def wait(self) -> None:
+        """Wait until the checkpoint is on disk; raise what its save raised (its unfinished files are deleted)."""
+        if self.thread is not None:
+            self.thread.join()
+        if self.raised:
+            raise self.raised[0]
+
+
+def save_in_background(
+    mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1
+) -> Pending:
+    """`save` of a copy of `state` made on its devices (`_copy`: the caller may donate `state` at once) in a
+    thread; the next use of `mngr` must come after `Pending.wait`. It saves `state` itself before returning where
+    its devices have no room for the copy, and where this process is one of several, since Orbax's multi-process
+    saves synchronise the processes."""
+    pending, copy = Pending(step), None if multihost.several() else _copy_if_room(state)
+
+    def write() -> None:
+        try:
+            save(mngr, step, state if copy is None else copy, config, eval_success, env_shards)
+        except BaseException as err:  # raised to whoever waits for it
+            pending.raised.append(err)
+
+    if copy is None:
+        write()
+    else:
+        pending.thread = threading.Thread(name=f"checkpoint {step}", target=write)
+        pending.thread.start()
+    return pending
 
 
 def remove_unfinished(directory: str, step: int) -> None:

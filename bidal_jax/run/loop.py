@@ -5,7 +5,8 @@
 
 `train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
 (metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
-`checkpoint`), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
+`checkpoint`; each written while the next epochs train, but the run's last, which is on disk before `train`
+returns or raises), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
 non-finite metric or parameter stops the run without saving it; `guard`), inside the run
 directory's lock that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the
 replay buffer, which starts empty; config.json's "fresh_buffer_epochs" records after which epochs.
@@ -252,6 +253,17 @@ def _last_good(saved: int | None, ckpt_dir: str) -> str:
     return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
 
 
+def _finish(pending: checkpoint.Pending | None, saved: int | None, ckpt_dir: str, size: str) -> int | None:
+    """Wait for the checkpoint being written (`pending`), if any: the epoch of the last checkpoint on disk then
+    (`saved` before it); its failure is raised as `rundir.disk_errors` words it."""
+    if pending is None:
+        return saved
+    with rundir.disk_errors(f"saving checkpoint {pending.step} in {ckpt_dir} (needs about {size})",
+                            _last_good(saved, ckpt_dir)):
+        pending.wait()
+    return pending.step
+
+
 def _train(
     env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float, fresh_buffer: bool,
     programs: Programs | None,
@@ -285,6 +297,7 @@ def _train(
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
         size = rundir.megabytes(rundir.with_margin(rundir.tree_bytes(state)))
         start = time.time()
+        pending = None  # the checkpoint being written while the next epochs train (`checkpoint.save_in_background`)
         bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
                    unit="epoch", initial=start_epoch, total=run.epochs)
         try:
@@ -301,22 +314,29 @@ def _train(
                     log.write(row)
                 bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
+                    saved, pending = _finish(pending, saved, ckpt_dir, size), None
                     raise Diverged(f"diverged at epoch {e}: {bad}; {_last_good(saved, ckpt_dir)}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success
                 # read once: a signal arriving after this waits for the next epoch; one process's stops all
                 signum = multihost.largest(stop.signum or 0) or None
-                if e % run.checkpoint_every == 0 or e == run.epochs or done or signum:
+                last = e == run.epochs or done or signum
+                if e % run.checkpoint_every == 0 or last:
+                    saved, pending = _finish(pending, saved, ckpt_dir, size), None
                     with rundir.disk_errors(f"saving checkpoint {e} in {ckpt_dir} (needs about {size})",
                                             _last_good(saved, ckpt_dir)):
-                        checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
-                    saved = e
+                        if last:  # the run ends here: on disk before it does
+                            checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
+                            saved = e
+                        else:
+                            pending = checkpoint.save_in_background(mngr, e, state, cfg, row["eval_success"], shards)
                 if signum:
                     raise Interrupted(signum, e, run.run_dir)
                 if done:
                     break
         except BaseException:
-            runfiles.close_quietly(bar.close, log.close, mngr.close)  # their errors never mask this one
+            # a checkpoint being written is finished first; these errors never mask this one
+            runfiles.close_quietly(*([pending.wait] if pending else []), bar.close, log.close, mngr.close)
             raise
         with rundir.disk_errors(f"closing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             bar.close()

@@ -96,14 +96,14 @@ def initialize(environ: Mapping[str, str] = os.environ) -> None:
         jax.distributed.initialize(**args)
 
 
-def _several() -> bool:
+def several() -> bool:
     """Whether this process is one of several (`initialize` started them); touches no device."""
     return jax.distributed.is_initialized() and jax.process_count() > 1
 
 
 def is_main() -> bool:
     """Whether this is process 0 (or the only one), which writes the run's files."""
-    return not _several() or jax.process_index() == 0
+    return not several() or jax.process_index() == 0
 
 
 def _spans_processes(x: Any) -> bool:
@@ -147,12 +147,12 @@ def host_parts(tree: Any) -> Iterator[Any]:
 
 def largest(value: int) -> int:
     """The largest of every process's `value` (every process calls it); with one process, `value`."""
-    if not _several():
+    if not several():
         return value
     return int(np.max(multihost_utils.process_allgather(np.int32(value))))
 
 
 def barrier(name: str) -> None:
     """Wait until every process reaches the barrier `name`; with one process, return at once."""
-    if _several():
+    if several():
         multihost_utils.sync_global_devices(name)

@@ -4,19 +4,24 @@ nothing), a full disk while saving a checkpoint ends the run with one line and e
 resume continues from the last good checkpoint, a disk without room for one checkpoint is refused
 at start, and loading a policy logs no Orbax warning."""
 
+import csv
 import errno
 import logging
 import os
 import signal
 import subprocess
 import sys
+import threading
 from collections import namedtuple
 
+import jax
+import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
 import envs_mjx
 from bidal_jax.run import checkpoint, preflight, rundir
+from bidal_jax.run.metrics import MetricsLog
 from bidal_jax.run.policy import load_policy
 from experiments import cli, run
 from tests.helpers import REPO, TINY
@@ -127,6 +132,48 @@ def test_a_full_disk_while_saving_a_checkpoint_ends_with_one_line_and_the_run_re
     full_disk_at_checkpoint_2.undo()  # space was freed
     assert run.main(["--resume", "--run-dir", str(run_dir), "--quiet"]) == 0
     assert checkpoint.latest_step(str(ckpt_dir)) == 3
+
+
+def test_a_checkpoint_is_written_while_the_next_epoch_trains_and_holds_its_own_epoch(tmp_path, monkeypatch):
+    """Checkpoint 1 is written in the background: its save waits (up to a minute) for epoch 2's metrics, which a
+    save that blocked the loop would never let come; and it holds epoch 1's state, not the donated one after."""
+    run_dir = tmp_path / "run"
+    ckpt_dir = str(run_dir / "checkpoints")
+    trained_2, threads = threading.Event(), []
+    write, save = MetricsLog.write, checkpoint.save
+
+    def writing(self, row):
+        write(self, row)
+        trained_2.set() if row["epoch"] == 2 else None
+
+    def saving(mngr, step, *args, **kwargs):
+        threads.append(threading.current_thread().name)
+        if step == 1 and not trained_2.wait(timeout=60):
+            raise AssertionError("epoch 2 did not train while checkpoint 1 was written")
+        save(mngr, step, *args, **kwargs)
+
+    monkeypatch.setattr(MetricsLog, "write", writing)
+    monkeypatch.setattr(checkpoint, "save", saving)
+    assert run.main([*TINY, "--epochs", "3", "--checkpoint-every", "1", "--run-dir", str(run_dir)]) == 0
+    with open(run_dir / "metrics.csv") as f:
+        steps = [float(row["env_steps_total"]) for row in csv.DictReader(f)]
+    kept, leaf = checkpoint.steps(ckpt_dir), {"env_steps": checkpoint.read_metadata(ckpt_dir)["state"]["env_steps"]}
+    saved = [float(np.sum(checkpoint.restore_partial(ckpt_dir, e, leaf)["env_steps"])) for e in kept]
+    assert kept[-1] == 3 and len(kept) >= 2 and saved == [steps[e - 1] for e in kept]
+    assert threads == ["checkpoint 1", "checkpoint 2", "MainThread"]  # the run's last save before it ends
+
+
+def test_a_checkpoint_is_written_before_the_next_epoch_where_the_devices_have_no_room_for_a_copy(tmp_path, monkeypatch):
+    run_dir, threads, save = tmp_path / "run", [], checkpoint.save
+
+    def no_room(state):
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 1024 bytes.")
+
+    monkeypatch.setattr(checkpoint, "_copy", no_room)
+    monkeypatch.setattr(checkpoint, "save", lambda *args: (threads.append(threading.current_thread().name),
+                                                           save(*args)))
+    assert run.main([*TINY, "--epochs", "2", "--checkpoint-every", "1", "--run-dir", str(run_dir)]) == 0
+    assert threads == ["MainThread", "MainThread"] and checkpoint.steps(str(run_dir / "checkpoints")) == [1, 2]
 
 
 def test_a_disk_without_room_for_one_checkpoint_is_refused_at_start(tmp_path, monkeypatch, capsys):
