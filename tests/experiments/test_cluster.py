@@ -80,9 +80,9 @@ def test_a_two_cell_grid_fills_both_run_folders(filled):
 
 
 def train_paused_once(payload) -> int:
-    """`grid.train_cell` in a Ray worker whose first attempt, once epoch 2's row is written (after checkpoint 1,
-    before checkpoint 2), writes its PID into FOLDER/paused and waits to be killed; every attempt appends the
-    epoch of the latest checkpoint it starts from to FOLDER/attempts."""
+    """`grid.train_cell` in a Ray worker whose first attempt, once epoch 2's row is written and checkpoint 1 is on
+    disk (it is written while epoch 2 trains; before checkpoint 2), writes its PID into FOLDER/paused and waits to
+    be killed; every attempt appends the epoch of the latest checkpoint it starts from to FOLDER/attempts."""
     cell, folder = payload
     first = not os.path.exists(os.path.join(folder, "attempts"))
     with open(os.path.join(folder, "attempts"), "a") as f:
@@ -93,6 +93,9 @@ def train_paused_once(payload) -> int:
         def write_then_pause(log, row):
             write(log, row)
             if row["epoch"] == 2:
+                deadline = time.time() + 120
+                while grid.latest(cell[0]) != 1 and time.time() < deadline:
+                    time.sleep(0.05)
                 with open(os.path.join(folder, "paused"), "w") as f:
                     f.write(str(os.getpid()))
                 time.sleep(600)
