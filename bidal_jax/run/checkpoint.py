@@ -142,8 +142,31 @@ def _copy(tree: Any) -> Any:
     return jax.tree.map(jnp.copy, tree)
 
 
+def _memory_stats(device: jax.Device) -> dict | None:
+    """The device's allocator figures (`bytes_limit`, `peak_bytes_in_use`, ...; None on a CPU)."""
+    return device.memory_stats()
+
+
+def _room_for_copy(state: Any) -> bool:
+    """Whether each device holding `state` has room for a copy of its part beside the most it has held yet (the
+    epochs' temporaries included, so the next epoch still fits beside the copy); a device that keeps no figures
+    (a CPU) is taken to have room."""
+    parts: dict[Any, int] = {}
+    for leaf in jax.tree.leaves(state):
+        for shard in leaf.addressable_shards:
+            parts[shard.device] = parts.get(shard.device, 0) + shard.data.nbytes
+    for device, nbytes in parts.items():
+        stats = _memory_stats(device) or {}
+        if "bytes_limit" in stats and stats.get("peak_bytes_in_use", 0) + nbytes > stats["bytes_limit"]:
+            return False
+    return True
+
+
 def _copy_if_room(state: Any) -> Any | None:
-    """`_copy(state)`, or None where its devices have no room for it."""
+    """`_copy(state)`, or None where its devices have no room for it (`_room_for_copy`, or the copy fails for
+    want of memory)."""
+    if not _room_for_copy(state):
+        return None
     try:
         return _copy(state)
     except jax.errors.JaxRuntimeError as err:

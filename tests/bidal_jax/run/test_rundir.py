@@ -163,13 +163,28 @@ def test_a_checkpoint_is_written_while_the_next_epoch_trains_and_holds_its_own_e
     assert threads == ["checkpoint 1", "checkpoint 2", "MainThread"]  # the run's last save before it ends
 
 
-def test_a_checkpoint_is_written_before_the_next_epoch_where_the_devices_have_no_room_for_a_copy(tmp_path, monkeypatch):
+def test_a_copy_has_room_beside_the_devices_peak_use(monkeypatch):
+    state = {"a": jax.numpy.zeros(256, jax.numpy.float32), "b": jax.numpy.zeros(256, jax.numpy.uint8)}  # 1,280 bytes
+    assert checkpoint._room_for_copy(state)  # a CPU keeps no figures
+    for peak, room in ((2**20 - 1280, True), (2**20 - 1279, False)):
+        stats = {"bytes_limit": 2**20, "peak_bytes_in_use": peak}
+        monkeypatch.setattr(checkpoint, "_memory_stats", lambda device, stats=stats: stats)
+        assert checkpoint._room_for_copy(state) == room
+
+
+def _out_of_memory(state):
+    raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 1024 bytes.")
+
+
+@pytest.mark.parametrize("short", [
+    ("_memory_stats", lambda device: {"bytes_limit": 2**30, "peak_bytes_in_use": 2**30 - 1024}),  # a full device
+    ("_copy", _out_of_memory),  # the copy itself fails
+])
+def test_a_checkpoint_is_written_before_the_next_epoch_where_the_devices_have_no_room_for_a_copy(
+    tmp_path, monkeypatch, short
+):
     run_dir, threads, save = tmp_path / "run", [], checkpoint.save
-
-    def no_room(state):
-        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory while trying to allocate 1024 bytes.")
-
-    monkeypatch.setattr(checkpoint, "_copy", no_room)
+    monkeypatch.setattr(checkpoint, *short)
     monkeypatch.setattr(checkpoint, "save", lambda *args: (threads.append(threading.current_thread().name),
                                                            save(*args)))
     assert run.main([*TINY, "--epochs", "2", "--checkpoint-every", "1", "--run-dir", str(run_dir)]) == 0
