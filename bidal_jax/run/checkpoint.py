@@ -195,22 +195,22 @@ def save_in_background(
     mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1
 ) -> Pending:
     """`save` of a copy of `state` made on its devices (`_copy`: the caller may donate `state` at once) in a
-    thread; the next use of `mngr` must come after `Pending.wait`. It saves `state` itself before returning where
-    its devices have no room for the copy, and where this process is one of several, since Orbax's multi-process
-    saves synchronise the processes."""
+    thread; the next use of `mngr` must come after `Pending.wait`. It saves `state` itself before returning (and
+    raises as `save` does) where its devices have no room for the copy, and where this process is one of several,
+    since Orbax's multi-process saves synchronise the processes."""
     pending, copy = Pending(step), None if multihost.several() else _copy_if_room(state)
+    if copy is None:
+        save(mngr, step, state, config, eval_success, env_shards)  # its failure raised here
+        return pending
 
     def write() -> None:
         try:
-            save(mngr, step, state if copy is None else copy, config, eval_success, env_shards)
+            save(mngr, step, copy, config, eval_success, env_shards)
         except BaseException as err:  # raised to whoever waits for it
             pending.raised.append(err)
 
-    if copy is None:
-        write()
-    else:
-        pending.thread = threading.Thread(name=f"checkpoint {step}", target=write)
-        pending.thread.start()
+    pending.thread = threading.Thread(name=f"checkpoint {step}", target=write)
+    pending.thread.start()
     return pending
 
 

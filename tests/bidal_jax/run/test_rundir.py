@@ -209,3 +209,13 @@ def test_loading_a_policy_logs_no_warning(tmp_path, caplog):
         trained = load_policy(str(run_dir))
     assert trained.step == 1
     assert [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING] == []
+
+
+def test_a_save_in_place_that_fails_ends_the_run_before_the_next_epoch(tmp_path, full_disk_at_checkpoint_2, capsys):
+    full_disk_at_checkpoint_2.setattr(checkpoint, "_copy", _out_of_memory)
+    run_dir = tmp_path / "run"
+    assert run.main([*TINY, "--epochs", "3", "--checkpoint-every", "1", "--run-dir", str(run_dir)]) == cli.EXIT_DISK
+    (line,) = error_lines(capsys.readouterr().err)
+    assert line.startswith(f"error: no space left on device while saving checkpoint 2 in {run_dir / 'checkpoints'}")
+    with open(run_dir / "metrics.csv") as f:
+        assert [row["epoch"] for row in csv.DictReader(f)] == ["1", "2"]  # a save in the background: 3 rows
