@@ -242,12 +242,13 @@ def make_envs(arms: Sequence[Arm]) -> dict[str, Any]:
     return envs
 
 
-def plan_line(arm: Arm, env) -> str:
-    """What the run is, its epochs and env steps per seed, and what training does with it."""
+def plan_line(arm: Arm, env, progress: Status) -> str:
+    """What the run is, its epochs and env steps per seed, and what training does with it at its `progress`
+    (`status`)."""
     run, train = arm.config.run, arm.config.train
     per_epoch = train.cycles_per_epoch * train.num_envs * env.episode_length
     source = f", parameters from {run.init_from}" if run.init_from else ""
-    state, step, why = status(arm, env.physics_id)
+    state, step, why = progress
     carried = " without its replay buffer" if state == "resume" and without_buffer(arm) else ""
     return (
         f"{run.env} {run.agent}, {run.seeds} seed(s), exploration starts {train.exploration_starts:g}{source}; "
@@ -305,8 +306,8 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
     statuses = [status(arm, envs[arm.name].physics_id) for arm in arms]
     seconds = [estimate(arm, progress) for arm, progress in zip(arms, statuses)]
     lines = [heading]
-    lines += [f"{f'{arm.name}: ' if named else ''}{plan_line(arm, envs[arm.name])}; estimated {s:,.0f} s"
-              for arm, s in zip(arms, seconds)]
+    lines += [f"{f'{arm.name}: ' if named else ''}{plan_line(arm, envs[arm.name], progress)}; estimated {s:,.0f} s"
+              for arm, progress, s in zip(arms, statuses, seconds)]
     lines.append(
         f"estimated time: {duration(sum(seconds))} on one GPU running the runs one after another "
         "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
