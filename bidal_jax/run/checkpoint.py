@@ -181,14 +181,14 @@ class Pending:
 
     step: int
     thread: threading.Thread | None = None
-    raised: list[BaseException] = dataclasses.field(default_factory=list)
+    raised: BaseException | None = None
 
     def wait(self) -> None:
         """Wait until the checkpoint is on disk; raise what its save raised (its unfinished files are deleted)."""
         if self.thread is not None:
             self.thread.join()
-        if self.raised:
-            raise self.raised[0]
+        if self.raised is not None:
+            raise self.raised
 
 
 def save_in_background(
@@ -207,7 +207,7 @@ def save_in_background(
         try:
             save(mngr, step, copy, config, eval_success, env_shards)
         except BaseException as err:  # raised to whoever waits for it
-            pending.raised.append(err)
+            pending.raised = err
 
     pending.thread = threading.Thread(name=f"checkpoint {step}", target=write)
     pending.thread.start()
