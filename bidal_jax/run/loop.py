@@ -165,12 +165,19 @@ def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Calla
     """(a new run's initial state, the compiled epoch). The state's program (the seeds' keys and `init`) compiles
     and runs in a second thread while this one traces the epoch and XLA compiles it for the state's shapes and
     shardings (`abstract_state`), which is all compiling needs: a start waits for the longer of the two, not their
-    sum (the main command on a 2-core CPU: about 3 s of init beside some 30 s of the epoch's trace and compile).
+    sum (the main command on a 2-core CPU: about 3 s of init beside some 30 s of the epoch's trace and compile);
+    on accelerators that thread then compiles what the checkpoints run (`checkpoint.compile_for`).
     The programs are the same, so is what they compute."""
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-        initial = pool.submit(lambda: programs.init(programs.keys()))
+        initial = pool.submit(lambda: _compiled_for_saves(programs.init(programs.keys())))
         compiled = _compile(programs, config, env, programs.abstract_state(), log)
         return initial.result(), compiled
+
+
+def _compiled_for_saves(state: Any) -> Any:
+    """`state`, once the programs its checkpoints run on its devices are compiled (`checkpoint.compile_for`)."""
+    checkpoint.compile_for(state)
+    return state
 
 
 def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:
