@@ -121,8 +121,8 @@ def compile_for(state: Any) -> None:
 def wsum_digest(state: Any) -> dict[str, int]:
     """Leaf name -> two sums of the leaf's bytes read as words w_0 … w_{n-1} in C order (a 1- or 2-byte value is a
     word, a 4-byte value one, an 8-byte value two), modulo 2^32: Σ w_i·(2i+1) in the high 32 bits, Σ w_i in the low.
-    Any one word changed changes the first (its odd weight is invertible modulo 2^32), and so does a swap of two
-    different words. Computed where the leaves lie (`_sums`), or where a state spans processes on this process's
+    Any one word changed changes the first (its odd weight is invertible modulo 2^32), as any one byte changed
+    changes a CRC-32. Computed where the leaves lie (`_sums`), or where a state spans processes on this process's
     default device from its host parts (`multihost.host_parts`, one seed at a time), to the same numbers."""
     paths, _ = jax.tree_util.tree_flatten_with_path(state)
     names, count = [leaf_name(path) for path, _ in paths], len(paths)
@@ -262,10 +262,11 @@ class Pending:
 def save_in_background(
     mngr: ocp.CheckpointManager, step: int, state: Any, config: dict, eval_success: float, env_shards: int = 1
 ) -> Pending:
-    """`save` of a copy of `state` made on its devices (`_copy`: the caller may donate `state` at once) in a
-    thread; the next use of `mngr` must come after `Pending.wait`. It saves `state` itself before returning (and
-    raises as `save` does) where its devices have no room for the copy, and where this process is one of several,
-    since Orbax's multi-process saves synchronise the processes."""
+    """`save` of a copy of `state` made on its devices (`_copy`: the caller may donate `state` at once) and digested
+    before it returns (`digest`: on GPUs a few milliseconds), written in a thread; the next use of `mngr` must come
+    after `Pending.wait`. It saves `state` itself before returning (and raises as `save` does) where its devices have
+    no room for the copy, and where this process is one of several, since Orbax's multi-process saves synchronise
+    the processes."""
     pending, copy = Pending(step), None if multihost.several() else _copy_if_room(state)
     if copy is None:
         save(mngr, step, state, config, eval_success, env_shards)  # its failure raised here
