@@ -272,6 +272,15 @@ class Env(abc.ABC):
         mujoco.mj_saveModel(self.mj_model, None, buffer)
         return hashlib.sha256(buffer.tobytes()).hexdigest()[:16]
 
+    def compile_physics(self) -> None:
+        """Compile what the physics engine builds at its first launch rather than with the program around it: MuJoCo
+        Warp builds its kernels' modules when a step first runs them (about 130 s for nicol_slide into an empty Warp
+        kernel cache on one H100), so one world is forwarded and stepped here; MJX-JAX needs nothing, XLA compiles it
+        with the epoch. `bidal_jax.run.loop` calls it beside the epoch's compile."""
+        if self.backend == "warp":
+            jax.block_until_ready(jax.jit(lambda d: mjx.step(self.mjx_model, mjx.forward(self.mjx_model, d)))(
+                self._blank))
+
     def blank_data(self) -> mjx.Data:
         """A fresh `mjx.Data` of this env's backend, to be filled by `_reset_data`."""
         return self._blank

@@ -166,18 +166,19 @@ def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Calla
     and runs in a second thread while this one traces the epoch and XLA compiles it for the state's shapes and
     shardings (`abstract_state`), which is all compiling needs: a start waits for the longer of the two, not their
     sum (the main command on a 2-core CPU: about 3 s of init beside some 30 s of the epoch's trace and compile);
-    on accelerators that thread then compiles what the checkpoints run (`checkpoint.compile_for`).
+    on accelerators that thread then compiles what the checkpoints run (`checkpoint.compile_for`), and MuJoCo
+    Warp's kernels (`Env.compile_physics`), which would otherwise be built in the first epoch, after XLA's compile.
     The programs are the same, so is what they compute."""
+    def initial_state():
+        state = programs.init(programs.keys())
+        checkpoint.compile_for(state)
+        env.compile_physics()
+        return state
+
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-        initial = pool.submit(lambda: _compiled_for_saves(programs.init(programs.keys())))
+        initial = pool.submit(initial_state)
         compiled = _compile(programs, config, env, programs.abstract_state(), log)
         return initial.result(), compiled
-
-
-def _compiled_for_saves(state: Any) -> Any:
-    """`state`, once the programs its checkpoints run on its devices are compiled (`checkpoint.compile_for`)."""
-    checkpoint.compile_for(state)
-    return state
 
 
 def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:

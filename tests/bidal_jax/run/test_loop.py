@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 import types
 
@@ -265,3 +266,16 @@ def test_source_locations_are_short_unless_the_user_asks_for_tracebacks(monkeypa
     finally:
         jax.config.update(name, kept)
     assert setting is expected
+
+
+def test_a_new_run_compiles_the_physics_kernels_and_the_saves_beside_the_epoch(tmp_path, monkeypatch):
+    """What would otherwise compile at its first use (MuJoCo Warp's kernels in the first epoch, the checkpoint's copy
+    and digest at the first save) compiles in the init thread while the epoch compiles, once each."""
+    calls = []
+    monkeypatch.setattr(envs_mjx.base.Env, "compile_physics",
+                        lambda self: calls.append(("physics", threading.current_thread().name)))
+    monkeypatch.setattr(checkpoint, "compile_for",
+                        lambda state: calls.append(("saves", threading.current_thread().name)))
+    assert run.main([*TINY, "--epochs", "1", "--run-dir", str(tmp_path / "run")]) == 0
+    assert [what for what, _ in calls] == ["saves", "physics"]
+    assert all(thread != threading.main_thread().name for _, thread in calls)
