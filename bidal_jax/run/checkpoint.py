@@ -125,8 +125,7 @@ def wsum_digest(state: Any) -> dict[str, int]:
     changes a CRC-32. Computed where the leaves lie (`_sums`), or where a state spans processes on this process's
     default device from its host parts (`multihost.host_parts`, one seed at a time), to the same numbers."""
     paths, _ = jax.tree_util.tree_flatten_with_path(state)
-    names, count = [leaf_name(path) for path, _ in paths], len(paths)
-    leaves = jax.tree.leaves(state)
+    names, leaves, count = [leaf_name(path) for path, _ in paths], [leaf for _, leaf in paths], len(paths)
     whole = all(not isinstance(x, jax.Array) or x.is_fully_addressable for x in leaves)
     parts = [leaves] if whole else (jax.tree.leaves(part) for part in multihost.host_parts(state))
     weighted, total, offset = [0] * count, [0] * count, [0] * count
