@@ -90,6 +90,16 @@ class Phase(NamedTuple):
     key_goals: jax.Array
 
 
+HITS, COUNT = "_hits", "_count"  # a cycle's successes and episodes of a start kind, summed into its rate by `epoch`
+
+
+def start_kinds(pick: jax.Array) -> dict[str, jax.Array]:
+    """The training episodes of each start kind, as masks [n] of `acting.Starts.pick`: "train_success_held" begun by
+    `env.exploration_reset` (nicol_lift: the cube in the hand, HER's pick-and-place protocol) and
+    "train_success_table" by `env.reset`, so that a run shows how far the held starts alone carry its success."""
+    return {"train_success_held": pick, "train_success_table": jnp.logical_not(pick)}
+
+
 def branch(pred: bool | jax.Array, on_true: Callable, on_false: Callable, *operands) -> Any:
     """`lax.cond` on a traced `pred`; on a Python bool, the one branch it picks (the other is not traced)."""
     if isinstance(pred, bool):
@@ -332,9 +342,12 @@ def make_train(env, config: Config, env_shards: int = 1):
                 env_steps=ts.env_steps + train.num_envs * env.episode_length,
             )
         ts, metrics = jax.lax.scan(update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
-        train_success = shards.average(final.metrics["success"].mean())
-        return ts.replace(buffer=None), {**shards.average(jax.tree.map(jnp.mean, metrics)),
-                                         "train_success": train_success}
+        success = final.metrics["success"]
+        kinds = {} if phase.starts.pick is None else start_kinds(phase.starts.pick)
+        counted = {f"{kind}{part}": shards.average(value) for kind, mask in kinds.items()
+                   for part, value in ((HITS, (success * mask).sum()), (COUNT, mask.sum().astype(jnp.float32)))}
+        return ts.replace(buffer=None), {**shards.average(jax.tree.map(jnp.mean, metrics)), **counted,
+                                         "train_success": shards.average(success.mean())}
 
     learned = jax.jit(learn)  # one trace serves the program and the shapes of its metrics (`skip`)
 
@@ -386,6 +399,9 @@ def make_train(env, config: Config, env_shards: int = 1):
         ts = ts.replace(epoch=ts.epoch + 1)
         metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),
                    "env_steps": ts.env_steps}
+        for kind in (k for k in list(metrics) if k.endswith(HITS)):  # the cycles' successes of a start kind
+            name = kind.removesuffix(HITS)
+            metrics[name] = metrics.pop(kind) / jnp.maximum(metrics.pop(name + COUNT), 1e-9)
         for name, mask in env.goal_subsets(goals).items():  # e.g. nicol_lift's air goals: success among them
             hits, count = shards.average((success * mask).sum()), shards.average(mask.sum().astype(jnp.float32))
             metrics[f"eval_success_{name}"] = hits / jnp.maximum(count, 1.0)

@@ -405,15 +405,17 @@ class NicolLift(NicolEnv):
         self._held_qpos, self._held_ctrl = jnp.asarray(held_qpos), jnp.asarray(held_ctrl)
 
     def goal_subsets(self, goal: jax.Array) -> dict[str, jax.Array]:
-        """{"air": whether each goal [..., 3] lies above the table (the lifting skill)}."""
-        return {"air": goal[..., 2] > TABLE_HEIGHT + CUBE_HALF + 1e-3}
+        """{"air": whether each goal [..., 3] lies above the table (the lifting skill), "table": whether it lies on
+        it (pushing, which sliding alone solves)}."""
+        air = goal[..., 2] > TABLE_HEIGHT + CUBE_HALF + 1e-3
+        return {"air": air, "table": jnp.logical_not(air)}
 
     def never_lift_success(self) -> dict[str, float]:
-        """Success of a policy that slides the cube perfectly but never lifts it, over all goals and over
-        air goals: an air goal counts when its height above the resting cube is at most ε."""
+        """Success of a policy that slides the cube perfectly but never lifts it, over all goals, over air goals
+        (one counts when its height above the resting cube is at most ε) and over table goals (every one)."""
         low, high = LIFT_HEIGHT[0] - CUBE_HALF, LIFT_HEIGHT[1] - CUBE_HALF
         air = float(np.clip((EPSILON - low) / (high - low), 0.0, 1.0))
-        return {"all": 1.0 - self.air_goal_probability * (1.0 - air), "air": air}
+        return {"all": 1.0 - self.air_goal_probability * (1.0 - air), "air": air, "table": 1.0}
 
     def _exploration_reset_data(self, key):
         # the goal as in `reset` (drawn for a cube on the table); the cube starts in the hand

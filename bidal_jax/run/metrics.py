@@ -91,15 +91,19 @@ class MetricsLog:
             self.writer.close()
 
 
+PER_SEED = ("eval_success", "train_success")  # the metrics that metrics.csv also keeps seed by seed
+
+
 def epoch_row(epoch: int, metrics: dict, epoch_seconds: float, steps_before: float, wall: float,
               wall_with_compile: float) -> dict[str, float]:
-    """One metrics.csv row: seed means of every metric, per-seed eval success, env steps, times: `wall_time`
-    (`wall`: seconds of training, from when the programs were built) and `wall_time_with_compile` (seconds
-    from when `train` began, building and compiling the programs included), both summed over the run's processes."""
+    """One metrics.csv row: seed means of every metric, per-seed eval and train success (`PER_SEED`), env steps,
+    times: `wall_time` (`wall`: seconds of training, from when the programs were built) and `wall_time_with_compile`
+    (seconds from when `train` began, building and compiling the programs included), both summed over the run's
+    processes."""
     row = {"epoch": epoch}
     for key, value in sorted(metrics.items()):
         row[key] = float(np.mean(value))
-    for key in sorted(k for k in metrics if k.startswith("eval_success")):  # also the goal subsets' (air)
+    for key in sorted(k for k in metrics if k.startswith(PER_SEED)):  # also the goal subsets' and start kinds'
         for i, value in enumerate(np.atleast_1d(metrics[key])):
             row[f"{key}_seed{i}"] = float(value)
     steps = float(np.sum(metrics["env_steps"]))
