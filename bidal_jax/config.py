@@ -13,7 +13,7 @@ import dataclasses
 from typing import Any, Callable
 
 from bidal_jax.agents import AGENTS, Agent, get
-from bidal_jax.networks import parse_strides
+from bidal_jax.networks import CONVS, parse_strides
 
 
 class ConfigError(ValueError):
@@ -57,7 +57,9 @@ def _name_list(v: str) -> bool:
     return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
 
 
-CONV_IMPLS = ("patch", "taps", "native", "stacked", "banded")  # NetworkConfig.conv_impl
+CONV_IMPLS = tuple(CONVS)  # NetworkConfig.conv_impl: "patch", "banded"
+# conv implementations of earlier versions, each the same function of the same parameters as "patch" (`recorded`)
+REMOVED_CONV_IMPLS = ("taps", "native", "stacked")
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
 INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
@@ -83,17 +85,14 @@ class NetworkConfig:
         "strides of the vision branch's four 3×3 conv layers, comma-separated (the first unpadded, the others "
         "'same'-padded): 3,2,2,1 maps 42×42 to 14, 7, 4, 4 (a 4×4 map: where things are survives; 3,2,2,2 "
         "ends at 2×2; docs/deviations.md); 2,2,1,1 to 20, 10, 10, 10",
-        Rule(str, _strides, "four comma-separated positive integers, e.g. 3,2,2,2"),
+        Rule(str, _strides, "four comma-separated positive integers, e.g. 3,2,2,1"),
     )
     conv_impl: str = doc(
         "patch",
-        "how the vision branch's convs are computed: 'patch' (strided slices concatenated into patches and one "
-        "matmul: 3-4× faster than 'native' on XLA:CPU, about 5× on one H100), 'taps' (a matmul per kernel tap, "
-        "summed: no patch tensor), 'native' (XLA's convolution, cuDNN on a GPU; under the seeds' vmap a grouped "
-        "convolution), 'stacked' (XLA's convolution of the seeds stacked along the channels with a "
-        "block-diagonal kernel: one dense convolution for all seeds) or 'banded' (each output row's window of "
-        "whole input rows times band matrices built from the kernel: one dense matmul per layer, no taps "
-        "copied); the same function and parameters, so runs of any compare and resume alike",
+        "how the vision branch's convs are computed, the same function and parameters either way (so runs of "
+        "either compare and resume alike): 'patch' (strided slices and one matmul: the fast form on a CPU) or "
+        "'banded' (input rows times band matrices of the kernel: the fast form on a GPU, the NICOL presets'; "
+        "docs/results.md, 'Image updates')",
         one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(
@@ -324,11 +323,18 @@ class Config:
 
 
 def recorded(group: str, fields: Any) -> Any:
-    """A config group's `fields` as a run recorded them (config.json), with the fields it is older than that its
-    run did otherwise than their default says: a transfer run (`init_from`) older than `init_normaliser` inherited
-    its source's proprio normaliser. Other fields newer than the record take their defaults, as they did."""
-    if group == "run" and isinstance(fields, dict) and fields.get("init_from") and "init_normaliser" not in fields:
+    """A config group's `fields` as a run recorded them (config.json, a checkpoint's), read as this version runs
+    them: fields the record is older than take what its run did where that is not their default (a transfer run,
+    `init_from`, older than `init_normaliser` inherited its source's proprio normaliser), and a conv implementation
+    removed since (`REMOVED_CONV_IMPLS`) reads as "patch", which computes the same function of the same parameters,
+    so that its runs still resume, evaluate and report. Other fields newer than the record take their defaults, as
+    they did."""
+    if not isinstance(fields, dict):
+        return fields
+    if group == "run" and fields.get("init_from") and "init_normaliser" not in fields:
         return {**fields, "init_normaliser": "inherit"}
+    if group == "network" and fields.get("conv_impl") in REMOVED_CONV_IMPLS:
+        return {**fields, "conv_impl": "patch"}
     return fields
 
 
