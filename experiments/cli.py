@@ -58,8 +58,8 @@ def command(main: Callable[[], int]) -> int:
     checkpoint instead) is one line on stderr and `EXIT_ON_SIGNAL[SIGINT]` (130), without a traceback.
 
     The objects alive when `main` ends are then frozen (`gc.freeze`): the process is about to exit, and the
-    interpreter's last garbage collection over the millions of objects of JAX, MuJoCo and Orbax took a second or
-    more of every command's exit (2-core CPU). Exit handlers still run and files still close."""
+    interpreter's last garbage collection over the millions of objects of JAX, MuJoCo and Orbax would lengthen every
+    command's exit (docs/results.md, "The main command"). Exit handlers still run and files still close."""
     try:
         return main()
     except KeyboardInterrupt:
