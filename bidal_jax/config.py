@@ -13,7 +13,7 @@ import dataclasses
 from typing import Any, Callable
 
 from bidal_jax.agents import AGENTS, Agent, get
-from bidal_jax.networks import parse_strides
+from bidal_jax.networks import CONVS, parse_strides
 
 
 class ConfigError(ValueError):
@@ -57,7 +57,9 @@ def _name_list(v: str) -> bool:
     return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
 
 
-CONV_IMPLS = ("patch", "taps", "native", "stacked", "banded")  # NetworkConfig.conv_impl
+CONV_IMPLS = tuple(CONVS)  # NetworkConfig.conv_impl: "patch", "banded"
+# conv implementations of earlier versions, each the same function of the same parameters as "patch" (`recorded`)
+REMOVED_CONV_IMPLS = ("taps", "native", "stacked")
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
 INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
@@ -83,17 +85,14 @@ class NetworkConfig:
         "strides of the vision branch's four 3×3 conv layers, comma-separated (the first unpadded, the others "
         "'same'-padded): 3,2,2,1 maps 42×42 to 14, 7, 4, 4 (a 4×4 map: where things are survives; 3,2,2,2 "
         "ends at 2×2; docs/deviations.md); 2,2,1,1 to 20, 10, 10, 10",
-        Rule(str, _strides, "four comma-separated positive integers, e.g. 3,2,2,2"),
+        Rule(str, _strides, "four comma-separated positive integers, e.g. 3,2,2,1"),
     )
     conv_impl: str = doc(
         "patch",
-        "how the vision branch's convs are computed: 'patch' (strided slices concatenated into patches and one "
-        "matmul: 3-4× faster than 'native' on XLA:CPU, about 5× on one H100), 'taps' (a matmul per kernel tap, "
-        "summed: no patch tensor), 'native' (XLA's convolution, cuDNN on a GPU; under the seeds' vmap a grouped "
-        "convolution), 'stacked' (XLA's convolution of the seeds stacked along the channels with a "
-        "block-diagonal kernel: one dense convolution for all seeds) or 'banded' (each output row's window of "
-        "whole input rows times band matrices built from the kernel: one dense matmul per layer, no taps "
-        "copied); the same function and parameters, so runs of any compare and resume alike",
+        "how the vision branch's convs are computed, the same function and parameters either way (so runs of "
+        "either compare and resume alike): 'patch' (strided slices and one matmul: the fast form on a CPU) or "
+        "'banded' (input rows times band matrices of the kernel: the fast form on a GPU, the NICOL presets'; "
+        "docs/results.md, 'Image updates')",
         one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(
@@ -241,14 +240,12 @@ def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> 
     """A NICOL task's preset, sized for one GPU: 100 epochs of `cycles_per_epoch` cycles of `num_envs` envs and
     `updates_per_cycle` gradient updates of batch 2,048, a buffer of the most whole rollouts of `num_envs` episodes
     that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as banded matmuls in bfloat16
-    (`NetworkConfig.conv_impl`, `vision_dtype`): on one H100 an image agent's update takes 2.4 ms against 5.6 with
-    float32 patches and 4.2 with bfloat16 taps, and nicol_slide and planar_reach learn alike over 3 seeds
-    (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and
-    warp-lang imports (`RunConfig.physics` auto): on one H100 a nicol_slide multimodal_bidal epoch takes 6.4 s
-    against 10.5 and a nicol_lift one 19.7 s against 25.4 (docs/results.md, "MJX-JAX against MuJoCo Warp"); a
-    checkpoint every 25 epochs instead of 5, since one holds the replay buffer (7 GB of frames for 5 seeds) and a
-    save took about 13 s on one H100, two slide epochs (docs/results.md, "What a checkpoint costs"); the CPU-sized
-    tasks keep the defaults."""
+    (`NetworkConfig.conv_impl`, `vision_dtype`), the fastest image update on a GPU, with which nicol_slide and
+    planar_reach learn as in float32 (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's
+    devices are NVIDIA GPUs and warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than
+    MJX-JAX's there (docs/results.md, "MJX-JAX against MuJoCo Warp"); a checkpoint every 25 epochs instead of 5,
+    since one holds the replay buffer (7 GB of frames for 5 seeds) and its save costs about two nicol_slide epochs
+    (docs/results.md, "What a checkpoint costs"). The CPU-sized tasks keep the defaults."""
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
              "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
     return {"run": {"epochs": 100, "physics": "auto", "checkpoint_every": 25}, "train": train,
@@ -270,13 +267,12 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "ur5_reach": {"run": {"epochs": 15}},
     # the NICOL tasks are sized for one GPU: many parallel envs, big batches and many gradient updates, which cost
     # little beside the physics there; the same for every agent of a task (equal budgets). nicol_slide: one cycle
-    # of 2,560 envs and 1,600 updates an epoch (128,000 env steps, one update per 80), since one wide cycle costs
-    # fewer sequential physics steps: multimodal_bidal (5 seeds, one H100, the nets and physics of that comparison)
-    # reached 0.9 at 338 s from a cold start, 14.3 s an epoch, where 512 envs × 5 cycles (the same env steps and
-    # updates) took 17.8 s an epoch; today's preset (banded convs, MuJoCo Warp) reaches it at 280 s, 6.4 s an epoch
-    # (docs/results.md, "Learning speed on nicol_slide: the preset")
+    # of 2,560 envs and 1,600 updates per epoch (128,000 env steps, one update per 80), since one wide cycle costs
+    # fewer sequential physics steps: its epochs are shorter than those of 512 envs × 5 cycles (the same env steps
+    # and updates), so multimodal_bidal reaches 0.9 as soon and a whole run ends sooner (docs/results.md, "Learning
+    # speed on nicol_slide: the preset")
     "nicol_slide": gpu_preset(2560, 1, 1600),
-    # nicol_lift and its reduced variant (the transfer target): 6,400 updates an epoch (one per 32 env steps), since
+    # nicol_lift and its reduced variant (the transfer target): 6,400 updates per epoch (one per 32 env steps), since
     # with 1,600 proprio_baseline (5 seeds) reached what sliding alone can score (0.125) only by epoch 53 instead of
     # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting")
     # they train under HER's pick-and-place protocol: half of the training episodes start with the cube held
@@ -334,11 +330,18 @@ class Config:
 
 
 def recorded(group: str, fields: Any) -> Any:
-    """A config group's `fields` as a run recorded them (config.json), with the fields it is older than that its
-    run did otherwise than their default says: a transfer run (`init_from`) older than `init_normaliser` inherited
-    its source's proprio normaliser. Other fields newer than the record take their defaults, as they did."""
-    if group == "run" and isinstance(fields, dict) and fields.get("init_from") and "init_normaliser" not in fields:
+    """A config group's `fields` as a run recorded them (config.json, a checkpoint's), read as this version runs
+    them: fields the record is older than take what its run did where that is not their default (a transfer run,
+    `init_from`, older than `init_normaliser` inherited its source's proprio normaliser), and a conv implementation
+    removed since (`REMOVED_CONV_IMPLS`) reads as "patch", which computes the same function of the same parameters,
+    so that its runs still resume, evaluate and report. Other fields newer than the record take their defaults, as
+    they did."""
+    if not isinstance(fields, dict):
+        return fields
+    if group == "run" and fields.get("init_from") and "init_normaliser" not in fields:
         return {**fields, "init_normaliser": "inherit"}
+    if group == "network" and fields.get("conv_impl") in REMOVED_CONV_IMPLS:
+        return {**fields, "conv_impl": "patch"}
     return fields
 
 

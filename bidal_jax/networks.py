@@ -16,7 +16,6 @@ imports the agents, which build these networks).
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import Any, Callable
 
 import chex
@@ -27,33 +26,12 @@ import numpy as np
 
 
 def parse_strides(text: str) -> tuple[int, ...]:
-    """`NetworkConfig.conv_strides` as integers: "3,2,2,2" -> (3, 2, 2, 2); ValueError if it is not
+    """`NetworkConfig.conv_strides` as integers: "3,2,2,1" -> (3, 2, 2, 1); ValueError if it is not
     four positive integers."""
     strides = tuple(int(part) for part in text.split(","))
     if len(strides) != 4 or min(strides) < 1:
         raise ValueError(f"{text!r}: not four positive integers")
     return strides
-
-
-_NHWC = ("NHWC", "HWIO", "NHWC")
-
-
-def _conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    """XLA's unpadded convolution of x [B, H, W, C] by kernel [k, k, C, F] with `stride`."""
-    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), "VALID", dimension_numbers=_NHWC)
-
-
-def _stacked_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
-    """`_conv` of S models at once, x [S, B, H, W, C] by their kernels [S, k, k, C, F] -> [S, B, H', W', F], as one
-    convolution of S·C channels: model s's frames are channels s·C..s·C+C-1 and the kernel [k, k, S·C, S·F] is
-    block-diagonal, so that no model reads another's channels (S times the arithmetic of a grouped convolution,
-    which cuDNN runs far slower than one dense convolution of S·C channels)."""
-    models, batch, height, width, channels = x.shape
-    k, features = kernel.shape[1], kernel.shape[-1]
-    stacked = x.transpose(1, 2, 3, 0, 4).reshape(batch, height, width, models * channels)
-    diagonal = jnp.einsum("st,sijcf->ijsctf", jnp.eye(models, dtype=kernel.dtype), kernel)
-    y = _conv(stacked, diagonal.reshape(k, k, models * channels, models * features), stride)
-    return y.reshape(*y.shape[:3], models, features).transpose(3, 0, 1, 2, 4)
 
 
 def _width_bands(kernel: jax.Array, stride: int, width: int) -> jax.Array:
@@ -87,12 +65,13 @@ def _window_rows(x: jax.Array, k: int, stride: int, top: int, out_h: int) -> jax
 
 
 def _banded_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, int, int, int]) -> jax.Array:
-    """`_conv` of x [B, H, W, C] zero-padded by `pads` (top, bottom, left, right) as one dense matmul: each output
-    row's window of k input rows, side by side (`_window_rows`), times the band matrices of the k kernel rows
-    stacked (`_width_bands`): [B·out_h, k·W·C] @ [k·W·C, out_w·F], the output rows in order. The padding costs no
-    copy of the frame: its zero rows are written into the windows, and the band rows of padded columns are dropped.
-    No transpose and no copy of taps: the band's zeros and the windows' overlap cost arithmetic instead (several
-    times that of the convolution), which a GPU's matrix units have to spare and its memory has not."""
+    """The unpadded convolution of x [B, H, W, C] zero-padded by `pads` (top, bottom, left, right) as one dense
+    matmul: each output row's window of k input rows, side by side (`_window_rows`), times the band matrices of the
+    k kernel rows stacked (`_width_bands`): [B·out_h, k·W·C] @ [k·W·C, out_w·F], the output rows in order. The
+    padding costs no copy of the frame: its zero rows are written into the windows, and the band rows of padded
+    columns are dropped. No transpose and no copy of taps: the band's zeros and the windows' overlap cost arithmetic
+    instead (several times that of the convolution), which a GPU's matrix units have to spare and its memory has
+    not."""
     batch, height, width, channels = x.shape
     k, features = kernel.shape[0], kernel.shape[-1]
     top, bottom, left, right = pads
@@ -103,106 +82,75 @@ def _banded_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, 
     return y.reshape(batch, out_h, -1, features)
 
 
-def _batched(axis_size: int, in_batched: list, *args: jax.Array) -> list[jax.Array]:
-    """`args` each with the vmapped axis in front (broadcast where it is not batched)."""
-    return [a if b else jnp.broadcast_to(a, (axis_size, *a.shape)) for a, b in zip(args, in_batched, strict=True)]
+def _patch_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, int, int, int]) -> jax.Array:
+    """The same convolution as `_banded_conv`, as the k² strided slices of the padded frame concatenated into
+    patches [B, out_h, out_w, k²·C] and multiplied by the kernel [k²·C, F] once: no convolution op, which XLA's CPU
+    backend runs slowly inside the training loop's `lax.scan`, and the least arithmetic."""
+    k, _, channels, features = kernel.shape
+    top, bottom, left, right = pads
+    x = jnp.pad(x, ((0, 0), (top, bottom), (left, right), (0, 0)))
+    out_h, out_w = (x.shape[1] - k) // stride + 1, (x.shape[2] - k) // stride + 1
+    taps = [x[:, dy : dy + stride * (out_h - 1) + 1 : stride, dx : dx + stride * (out_w - 1) + 1 : stride, :]
+            for dy in range(k) for dx in range(k)]
+    return jnp.concatenate(taps, axis=-1) @ kernel.reshape(k * k * channels, features)
 
 
-@functools.lru_cache(maxsize=None)
-def seed_stacked_conv(stride: int) -> Callable[[jax.Array, jax.Array], jax.Array]:
-    """`_conv` with `stride` as a function `conv(x, kernel)` that, under `jax.vmap` over models with a kernel each
-    (the seeds), runs as `_stacked_conv`, and so do its gradients: `custom_vmap` gives the batching rule of the
-    convolution and of its VJP, `custom_vjp` joins them (`custom_vmap` has no reverse-mode derivative of its own).
-    Unbatched it is `_conv`. Same function and gradients as `_conv` up to float rounding."""
+def _same_pads(height: int, width: int, k: int, stride: int) -> tuple[int, int, int, int]:
+    """The zero rows and columns (top, bottom, left, right) that 'SAME' padding adds around a height × width frame
+    so that a k×k convolution of `stride` gives ⌈height/stride⌉ × ⌈width/stride⌉ outputs, the odd one at the end
+    (as `nn.Conv` and `lax.conv_general_dilated` pad)."""
+    pad_h = max((-(-height // stride) - 1) * stride + k - height, 0)
+    pad_w = max((-(-width // stride) - 1) * stride + k - width, 0)
+    return pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2
 
-    @jax.custom_batching.custom_vmap
-    def forward(x, kernel):
-        return _conv(x, kernel, stride)
 
-    @forward.def_vmap
-    def _(axis_size, in_batched, x, kernel):
-        return _stacked_conv(*_batched(axis_size, in_batched, x, kernel), stride), True
-
-    @jax.custom_batching.custom_vmap
-    def backward(x, kernel, dy):
-        return jax.vjp(lambda x, kernel: _conv(x, kernel, stride), x, kernel)[1](dy)
-
-    @backward.def_vmap
-    def _(axis_size, in_batched, x, kernel, dy):
-        x, kernel, dy = _batched(axis_size, in_batched, x, kernel, dy)
-        return jax.vjp(lambda x, kernel: _stacked_conv(x, kernel, stride), x, kernel)[1](dy), (True, True)
-
-    @jax.custom_vjp
-    def conv(x, kernel):
-        return forward(x, kernel)
-
-    conv.defvjp(lambda x, kernel: (forward(x, kernel), (x, kernel)), lambda res, dy: backward(*res, dy))
-    return conv
+# how a conv is computed (`NetworkConfig.conv_impl`): the same function of the same parameters either way, so a
+# checkpoint of one runs, resumes and compares under the other
+CONVS: dict[str, Callable[..., jax.Array]] = {"patch": _patch_conv, "banded": _banded_conv}
 
 
 class PatchConv(nn.Module):
-    """A k×k convolution with stride s, written as strided slices and one matmul.
+    """A k×k convolution with stride s, written as matmuls instead of XLA's convolution op (the class keeps its
+    name, which names the layers in the parameter tree: checkpoints hold PatchConv_0 ... PatchConv_3).
 
-    Same result and parameter layout (kernel [k, k, C, F], bias [F]) as `nn.Conv`, but
-    XLA's CPU backend runs this form 3-4× faster inside the training loop's `lax.scan`,
-    where its native convolution is slow, and one H100 about 5× faster (seeds vmapped). `impl`
-    (`NetworkConfig.conv_impl`) picks how the same convolution is computed, same parameters: "patch" concatenates
-    the k² strided slices into patches [B, H', W', k²C] and multiplies them by the kernel once; "taps" multiplies
-    each slice by its kernel tap and sums, with no patch tensor; "native" is XLA's convolution op (cuDNN on a GPU),
-    which under the seeds' `vmap` becomes a grouped convolution; "stacked" is XLA's convolution with the vmapped
-    seeds stacked along the channels (`seed_stacked_conv`); "banded" multiplies each output row's window of whole
-    input rows by band matrices built from the kernel (`_banded_conv`).
-    It computes in the dtype of `x` (float32 parameters cast to it):
-    with bfloat16 input its patches, matmul and output are bfloat16 (`NetworkConfig.vision_dtype`).
+    Same result and parameter layout (kernel [k, k, C, F], bias [F]) as `nn.Conv`. `impl`
+    (`NetworkConfig.conv_impl`, a key of `CONVS`) picks how it is computed: "patch" (`_patch_conv`: strided slices
+    and one matmul, the fast form on a CPU, where XLA's convolution op is slow inside the training loop's
+    `lax.scan`) or "banded" (`_banded_conv`: whole input rows times band matrices of the kernel, the fast form on a
+    GPU; the GPU presets'; docs/results.md, "Image updates"). It computes in the dtype of `x` (float32 parameters
+    cast to it): with bfloat16 input its matmuls and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
 
     features: int
     kernel: int = 3
     stride: int = 2
     padding: str = "SAME"
-    impl: str = "patch"  # NetworkConfig.conv_impl: "patch", "taps", "native", "stacked" or "banded"
+    impl: str = "patch"  # NetworkConfig.conv_impl: a key of CONVS
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         chex.assert_rank(x, 4)
         _, height, width, channels = x.shape
-        k, s = self.kernel, self.stride
-        pads = (0, 0, 0, 0)
-        if self.padding == "SAME":
-            out_h, out_w = -(-height // s), -(-width // s)
-            pad_h, pad_w = max((out_h - 1) * s + k - height, 0), max((out_w - 1) * s + k - width, 0)
-            pads = (pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2)
-        else:
-            out_h, out_w = (height - k) // s + 1, (width - k) // s + 1
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, channels, self.features)).astype(x.dtype)
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.kernel, self.kernel, channels,
+                                                                       self.features)).astype(x.dtype)
         bias = self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
-        if self.impl == "banded":  # pads the frame inside its windows (`_banded_conv`)
-            return _banded_conv(x, kernel, s, pads) + bias
-        if self.padding == "SAME":
-            x = jnp.pad(x, ((0, 0), pads[:2], pads[2:], (0, 0)))
-        if self.impl == "native":  # x is padded already: a VALID convolution gives the out_h × out_w map
-            return _conv(x, kernel, s) + bias
-        if self.impl == "stacked":
-            return seed_stacked_conv(s)(x, kernel) + bias
-        taps = [x[:, dy : dy + s * (out_h - 1) + 1 : s, dx : dx + s * (out_w - 1) + 1 : s, :]
-                for dy in range(k) for dx in range(k)]
-        if self.impl == "taps":  # Σ over the k² taps of (strided slice) @ kernel[dy, dx]: no patch tensor
-            return sum(tap @ kernel[i // k, i % k] for i, tap in enumerate(taps)) + bias
-        return jnp.concatenate(taps, axis=-1) @ kernel.reshape(k * k * channels, self.features) + bias
+        pads = _same_pads(height, width, self.kernel, self.stride) if self.padding == "SAME" else (0, 0, 0, 0)
+        return CONVS[self.impl](x, kernel, self.stride, pads) + bias
 
 
 class VisionBranch(nn.Module):
     """Four 3×3 conv layers with ELU (paper Sec. III-B: "four convolution layers with Elu
     activation"), then a dense layer.
 
-    The paper gives no strides (`NetworkConfig.conv_strides`). The default 3,2,2,2 (a first
-    layer of non-overlapping patches) maps 42×42 → 14×14 → 7×7 → 4×4 → 2×2: on a CPU a stride-2
-    first layer over the full frame costs several times more per gradient step.
+    The paper gives no strides (`NetworkConfig.conv_strides`). The default 3,2,2,1 (a first
+    layer of non-overlapping patches, the first unpadded, the others 'same'-padded) maps 42×42 →
+    14×14 → 7×7 → 4×4 → 4×4: a map of at least 3×3 keeps where things are, and a first layer of
+    stride 3 keeps the later maps, and so the gradient step, small (docs/deviations.md).
     """
 
     channels: int
     features: int
-    strides: tuple[int, ...] = (3, 2, 2, 2)
+    strides: tuple[int, ...] = (3, 2, 2, 1)
     impl: str = "patch"  # how the convs are computed (PatchConv.impl)
     dtype: Any = jnp.float32  # what the layers compute in (parameters stay float32); the features come out float32
 

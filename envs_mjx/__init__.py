@@ -52,15 +52,14 @@ from envs_mjx.base import Env, ObservationSpec, State  # noqa: E402 - after the 
 # XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
 # before the first computation. With its default fusion emitters XLA:CPU compiles MJX
 # steps in time that grows exponentially with the depth of the kinematic tree (the
-# nine-level NICOL arm: >6 min per step function instead of ~20 s); without them its
+# nine-level NICOL arm: over ten times as long per step function); without them its
 # concurrency-optimised scheduler deadlocks nicol's step at 256 envs on 2 cores. Neither
 # flag affects GPUs; on planar/ur5 they cost <20 % of CPU physics throughput. XLA aborts
 # on flags it does not know, and newer releases dropped the first one, so they are set
 # only for the jaxlib they were measured with (the version pinned in pyproject.toml).
-# LLVM's optimisation level 1 instead of 2 halves XLA:CPU's compile time with no measured
-# loss of speed (2-core CPU, epoch compile: planar_reach proprio_baseline 3 seeds 20 -> 8.5 s,
-# ur5_reach multimodal_bidal 32 -> 20 s; init 6.7 -> 1.1 s and 28 -> 2 s; the epochs as fast);
-# the backend flag is global, so it is set only where no GPU plugin is installed.
+# LLVM's optimisation level 1 instead of 2 cuts XLA:CPU's compile of an epoch by a third to a
+# half, and its init's more, with no measured loss of speed; the backend flag is global, so it
+# is set only where no GPU plugin is installed.
 _CPU_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_enable_concurrency_optimized_scheduler=false")
 _CPU_ONLY_FLAGS = ("--xla_backend_optimization_level=1",)
 _FLAGS_JAXLIB = "0.10.2"

@@ -1,7 +1,8 @@
 """What the commands share: the config's options, starting a run, and the exit codes.
 
 - `run_parser()`: `python -m experiments.run`'s options, one per config field (their help is
-  the field's documentation); the paper experiments pass their extra options through it.
+  the field's documentation), after what the command does, its agents and tasks with their presets
+  (`run_description`); the paper experiments pass their extra options through it.
 - `start_run(given, ...)`: the one sequence that starts a run: prepare (every check, the env
   and the programs built once, the run directory locked and, when asked, emptied), restore
   another run's parameters when `init_from` asks, train.
@@ -24,10 +25,21 @@ import gc
 import os
 import signal
 import sys
+import textwrap
 from typing import Any, Callable, Sequence
 
 import envs_mjx
-from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunConfig, fields_help, option
+from bidal_jax.config import (
+    AGENTS,
+    CONFIG_CLASSES,
+    Config,
+    ConfigError,
+    RunConfig,
+    env_preset,
+    fields_help,
+    option,
+    resolve,
+)
 from bidal_jax.run import loop, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
@@ -58,8 +70,8 @@ def command(main: Callable[[], int]) -> int:
     checkpoint instead) is one line on stderr and `EXIT_ON_SIGNAL[SIGINT]` (130), without a traceback.
 
     The objects alive when `main` ends are then frozen (`gc.freeze`): the process is about to exit, and the
-    interpreter's last garbage collection over the millions of objects of JAX, MuJoCo and Orbax took a second or
-    more of every command's exit (2-core CPU). Exit handlers still run and files still close."""
+    interpreter's last garbage collection over the millions of objects of JAX, MuJoCo and Orbax would lengthen every
+    command's exit (docs/results.md, "The main command"). Exit handlers still run and files still close."""
     try:
         return main()
     except KeyboardInterrupt:
@@ -75,15 +87,48 @@ def _bool(text: str) -> bool:
     return text.lower() in ("1", "true", "yes")
 
 
+def preset_fields() -> frozenset[str]:
+    """The config fields that some task's preset sets, for some agent: their default is the preset's."""
+    return frozenset(field for env in CHOICES["env"] for agent in CHOICES["agent"]
+                     for values in env_preset(env, agent).values() for field in values)
+
+
+def task_line(env: str) -> str:
+    """One task's preset in a line: the default agent's epochs and what an epoch holds, and the agents whose
+    epochs differ: "planar_reach       20 epochs of 160 episodes, 400 updates (proprio_baseline 40)"."""
+    configs = {agent: resolve({"env": env, "agent": agent}) for agent in CHOICES["agent"]}
+    run, train = configs[RunConfig.agent].run, configs[RunConfig.agent].train
+    others = ", ".join(f"{agent} {c.run.epochs}" for agent, c in configs.items() if c.run.epochs != run.epochs)
+    return (f"  {env:<19}{run.epochs} epochs of {train.cycles_per_epoch * train.num_envs:,} episodes, "
+            f"{train.cycles_per_epoch * train.updates_per_cycle:,} updates" + (f" ({others})" if others else ""))
+
+
+def run_description() -> str:
+    """What `python -m experiments.run` does, its agents and tasks, and the presets, before its options: what a
+    newcomer reads first."""
+    agents = ", ".join(f"{a} (the default)" if a == RunConfig.agent else a for a in CHOICES["agent"])
+    return "\n".join([
+        *textwrap.wrap("Train an agent on a task: DDPG + HER, and for the *_bidal agents BidAL's forward and "
+                       "inverse models and their intrinsic reward. A run writes config.json, metrics.csv, "
+                       "TensorBoard logs and checkpoints into --run-dir.", 78),
+        "",
+        *textwrap.wrap(f"agents (--agent): {agents}", 78, subsequent_indent="  "),
+        f"tasks (--env), each with a preset of epochs and sizes ({RunConfig.agent}'s):",
+        *(task_line(env) for env in CHOICES["env"]),
+        *textwrap.wrap("A task's preset overrides the defaults below, and the options given override the "
+                       "preset (bidal_jax/config.py, ENV_PRESETS); --print-config prints the resolved config "
+                       "without training.", 78),
+    ])
+
+
 def run_parser() -> argparse.ArgumentParser:
-    """Options from the config dataclasses; defaults (with the env presets) are resolved after parsing."""
-    parser = argparse.ArgumentParser(
-        prog="python -m experiments.run",
-        description="Train DDPG + HER (+ BidAL forward/inverse models) on an MJX task. Envs: "
-        + ", ".join(CHOICES["env"]) + ". Agents: " + ", ".join(CHOICES["agent"]) + ".",
-        epilog="Defaults are the config's; the env presets of bidal_jax/config.py override some of them "
-        "(--print-config shows the values a run would use).",
-    )
+    """Options from the config dataclasses; defaults (with the env presets) are resolved after parsing. The help
+    leads with what the command does, its agents and tasks and the presets (`run_description`), the options after
+    them."""
+    parser = argparse.ArgumentParser(prog="python -m experiments.run", usage="%(prog)s [options]",
+                                     description=run_description(),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    preset = preset_fields()
     for group_name, cls in CONFIG_CLASSES.items():
         group = parser.add_argument_group(f"{group_name} options")
         helps = fields_help(cls)
@@ -91,13 +136,14 @@ def run_parser() -> argparse.ArgumentParser:
             kind = _bool if type(f.default) is bool else type(f.default)
             choices = CHOICES.get(f.name)
             listed = f"; one of: {', '.join(choices)}" if choices else ""
+            default = f"the task's preset, else {f.default!r}" if f.name in preset else repr(f.default)
             # None marks "not given", so that presets apply; the help shows the config default once
             group.add_argument(option(f.name), type=kind, default=None, metavar=f.name.upper(),
-                               help=f"{helps[f.name]}{listed} (default: {f.default!r})")
+                               help=f"{helps[f.name]}{listed} (default: {default})")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--resume", action="store_true",
                         help="continue the run in --run-dir from its latest checkpoint, with its saved config "
-                        "(only --epochs and --conv-impl may change)")
+                        "(only --epochs, --conv-impl and --physics may change)")
     parser.add_argument("--fresh-buffer", action="store_true",
                         help="with --resume: restore all but the replay buffer, which starts empty (a checkpoint "
                         "carried without its buffer item); recorded in config.json's fresh_buffer_epochs")

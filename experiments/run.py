@@ -1,7 +1,7 @@
 """Train an agent on a task: `python -m experiments.run --env ur5_reach`.
 
-Every field of the run, learner and network configs is an option (`--help` lists them
-with their documentation, the valid envs and agents). Per-epoch metrics go to
+Every field of the run, learner and network configs is an option (`--help` opens with the
+tasks, their presets and the agents, then lists the options with their documentation). Per-epoch metrics go to
 `<run-dir>/metrics.csv` and TensorBoard (`<run-dir>/tb`); Orbax checkpoints of the whole
 training state go to `<run-dir>/checkpoints` every K epochs and at the end (the latest two
 and the best by eval success are kept). The checks live in `bidal_jax.run.preflight`, the
@@ -10,8 +10,8 @@ loop and its outputs in `bidal_jax.run.loop`, the options and the start of a run
 
 - `--resume` continues the run in `--run-dir` from its latest checkpoint with the
   checkpoint's config; only `--epochs` (not below the checkpoint's epoch), `--run-dir`,
-  `--conv-impl` and `--quiet` may be given with other values. `--resume --fresh-buffer` restores all but the
-  replay buffer, which starts empty (a checkpoint carried without its `buffer` item; a deviation
+  `--conv-impl`, `--physics` and `--quiet` may be given with other values. `--resume --fresh-buffer` restores all
+  but the replay buffer, which starts empty (a checkpoint carried without its `buffer` item; a deviation
   from the uninterrupted run, recorded in config.json's `fresh_buffer_epochs`).
 - Ctrl-C (SIGINT) or SIGTERM lets the epoch in flight finish, saves a checkpoint and
   exits; a second signal exits at once.

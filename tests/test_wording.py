@@ -1,6 +1,8 @@
 """The repository speaks of the product (docs/design.md, convention 9): no tracked text file names how the work
 was organised or hosted, nor a hosting path. Every tracked text file is read, run configs and notes under results/
-included, except the metrics tables and figures there (numbers and images) and this file (it lists the words)."""
+included, except the metrics tables and figures there (numbers and images) and this file (it lists the words).
+And the code says what and why: no GPU model or timing in the sources of the packages and commands (the benches
+aside, whose output is timings); the figures are docs/results.md's."""
 
 import os
 import re
@@ -19,6 +21,10 @@ FORBIDDEN = re.compile(
 # the one product use of a forbidden word: pytest's fixture scope
 ALLOWED = re.compile(r"""scope=["']session["']""")
 DATA = re.compile(r"^results/.*\.(csv|png|svg)$")
+# a GPU model or a timing: the figures of a machine, which docs/results.md holds with their commands
+GPU_OR_TIMING = re.compile(r"[ABHV]100|[BH]200|[0-9] ?ms\b|s an epoch")
+CODE = ("bidal_jax", "envs_mjx", "experiments")
+BENCHES = os.path.join("experiments", "bench")
 
 
 def tracked_text_files() -> list[str]:
@@ -64,3 +70,31 @@ def test_no_tracked_text_file_speaks_of_how_the_work_was_organised():
     assert "README.md" in files and "docs/results.md" in files
     found = [hit for path in files for hit in hits(path)]
     assert found == [], "words of the work's organisation or hosting:\n" + "\n".join(found)
+
+
+def code_files() -> list[str]:
+    """The Python sources of `CODE`, relative to the repository, less the benches'."""
+    found = []
+    for top in CODE:
+        for folder, dirs, files in os.walk(os.path.join(REPO, top)):
+            dirs[:] = [d for d in dirs if d != "__pycache__"]
+            found += [os.path.relpath(os.path.join(folder, f), REPO) for f in files if f.endswith(".py")]
+    return sorted(path for path in found if not path.startswith(BENCHES + os.sep))
+
+
+def test_the_gpu_and_timing_pattern_finds_the_figures_and_spares_the_product():
+    assert all(GPU_OR_TIMING.search(s) for s in ("on one H100", "one H200 each", "an A100", "takes 2.4 ms",
+                                                 "5.6ms per update", "6.4 s an epoch", "1,600 updates an epoch"))
+    assert not any(GPU_OR_TIMING.search(s) for s in ("a control period of 0.04 s", "1,600 updates per epoch",
+                                                    "100 epochs", "items", "1 × cpu", "params"))
+
+
+def test_no_gpu_model_or_timing_in_the_code():
+    files = code_files()
+    assert os.path.join("bidal_jax", "networks.py") in files and os.path.join("envs_mjx", "base.py") in files
+    assert not any(path.startswith(BENCHES) for path in files)
+    found = []
+    for path in files:
+        with open(os.path.join(REPO, path), encoding="utf-8") as f:
+            found += [f"{path}:{n}: {line.strip()[:120]}" for n, line in enumerate(f, 1) if GPU_OR_TIMING.search(line)]
+    assert found == [], "GPU models or timings in the code (docs/results.md holds them):\n" + "\n".join(found)

@@ -94,8 +94,8 @@ def leaf_name(path: tuple) -> str:
 def digest(state: Any) -> dict:
     """The digest item of a checkpoint of `state`: {"wsum": `wsum_digest`} where the state lies whole in this
     process on GPUs (or other accelerators), so that its gigabytes of replay frames are not read back to the host
-    for it (a NICOL state of 16 GB took 14-20 s to digest there with CRC-32); else {"crc32": `crc32_digest`}, which
-    a CPU computes some ten times faster."""
+    for it (CRC-32 of a NICOL state's gigabytes was most of a save; docs/results.md, "What a checkpoint costs");
+    else {"crc32": `crc32_digest`}, which a CPU computes some ten times faster."""
     return {"wsum": wsum_digest(state)} if _on_accelerators(state) else {"crc32": crc32_digest(state)}
 
 
@@ -109,8 +109,8 @@ def _on_accelerators(state: Any) -> bool:
 
 
 def compile_for(state: Any) -> None:
-    """Compile the programs that a save of `state` runs on its accelerators (`_copy`, `_sums`: some 3 s for a
-    NICOL state on one H100), so that its first save does not wait for them; `loop.build` calls it beside the
+    """Compile the programs that a save of `state` runs on its accelerators (`_copy`, `_sums`: seconds for a
+    NICOL state), so that its first save does not wait for them; `loop.build` calls it beside the
     epoch's compile. Nothing on CPUs, whose digest is CRC-32 and whose cores the epoch's compile keeps busy."""
     if _on_accelerators(state):
         leaves = jax.tree.leaves(state)

@@ -98,9 +98,8 @@ def seed_sharding(devices: Sequence[jax.Device], shards: int = 1) -> Any:
 def over_seeds(fn: Callable) -> Callable:
     """`fn` mapped over the leading seed axis of its arguments and results: `jax.vmap(fn)`, except that an axis of
     one seed runs `fn` on its only row. Same maths and random draws, but XLA compiles a vmap's size-1 batch axis
-    into slower code: on a 2-core CPU the main command compiles in 30.4 s instead of 34.9 and an epoch takes 27.6 s
-    instead of 30.1 (medians of 3 pairs; docs/results.md, "The main command"). Its floats round otherwise than in
-    the vmapped program, so a one-seed run is not bitwise the one before."""
+    into slower code, which also takes longer to compile (docs/results.md, "The main command"). Its floats round
+    otherwise than in the vmapped program, so a one-seed run is not bitwise the one before."""
     vmapped = jax.vmap(fn)
 
     def mapped(*args):

@@ -165,7 +165,7 @@ def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Calla
     """(a new run's initial state, the compiled epoch). The state's program (the seeds' keys and `init`) compiles
     and runs in a second thread while this one traces the epoch and XLA compiles it for the state's shapes and
     shardings (`abstract_state`), which is all compiling needs: a start waits for the longer of the two, not their
-    sum (the main command on a 2-core CPU: about 3 s of init beside some 30 s of the epoch's trace and compile);
+    sum, and the init is short beside the epoch's trace and compile;
     on accelerators that thread then compiles what the checkpoints run (`checkpoint.compile_for`), and MuJoCo
     Warp's kernels (`Env.compile_physics`), which would otherwise be built in the first epoch, after XLA's compile.
     The programs are the same, so is what they compute."""
@@ -246,7 +246,8 @@ def history_record(run_dir: str, key: str, value: str, resume: bool) -> list[str
 
 def hardware() -> str:
     """The machine this process trains on, as config.json's "hardware" records it: "<devices> × <device kind>",
-    e.g. "1 × NVIDIA H100 80GB HBM3" or "1 × cpu" (all processes' devices, with several hosts)."""
+    e.g. "1 × cpu", or on GPUs their count and model as JAX names them (all processes' devices, with several
+    hosts)."""
     return f"{jax.device_count()} × {jax.devices()[0].device_kind}"
 
 
@@ -360,7 +361,7 @@ def enable_compilation_cache() -> None:
 
     Every program is kept, however fast it compiled: besides the run's programs, building the env (the camera's
     static image, MJX's data) and the seeds' keys run some sixty operations one by one, each its own small
-    compile, together about 1.5 s of every start on a 2-core CPU; read back, they take a fraction of that."""
+    compile, together a noticeable part of every start on a CPU; read back, they take a fraction of that."""
     cache = (os.environ.get("BIDAL_JAX_CACHE") or os.environ.get("JAX_COMPILATION_CACHE_DIR")
              or os.path.join(os.path.expanduser("~"), ".cache", "bidal_jax", "xla"))
     jax.config.update("jax_compilation_cache_dir", cache)
@@ -371,7 +372,7 @@ def short_source_locations() -> None:
     """Programs lowered with one source location per operation (its own line) instead of JAX's default, the whole
     Python stack (`jax_include_full_tracebacks_in_locations`); a user's $JAX_INCLUDE_FULL_TRACEBACKS_IN_LOCATIONS
     wins. Only the programs' metadata shrinks (what they compute is the same): the main command's compiled epoch
-    is 4.8 MB of HLO text instead of 6.5 MB, and XLA:CPU compiles it 1-2 s sooner on a 2-core CPU. The ops' names
+    is about a quarter less HLO text, which XLA:CPU compiles sooner. The ops' names
     shrink too, to the innermost `jit` and the op ("vmap(jit(step))/mul"), without the `jax.named_scope`s by which
     a profile attributes kernels (experiments/bench/tracing.py), so the profiling benches do not call it. Call it
     before anything is lowered."""

@@ -1,7 +1,7 @@
 """How fast the learner's gradient updates run alone, without physics: variants side by side.
 
     python -m experiments.bench.updates --env nicol_lift --agent multimodal_bidal --seeds 5 \\
-        --variant preset net.conv_impl=taps net.conv_impl=banded [--updates 200] [--profile DIR]
+        --variant preset net.conv_impl=patch net.conv_impl=banded [--updates 200] [--profile DIR]
 
 Builds the preset's `init` and learner (`bidal_jax.train.make_learner`) as a run builds them, fills each seed's
 replay buffer (zeros, but full, so that batches are drawn from all of it) and times `--updates` gradient updates

@@ -262,7 +262,7 @@ def plan_line(arm: Arm, env, progress: Status) -> str:
 # one process each, from an empty compilation cache, in results/scaling/epochs/TASK-AGENT.jsonl: multimodal_bidal
 # for "image" (every agent that sees images where no "image_baseline" is given), multimodal_baseline for
 # "image_baseline" (the baselines encode one frame fewer a sample in an update), proprio_baseline for "proprio". The
-# reaching tasks ran on one H100 with MJX-JAX physics, the NICOL tasks on one H200 with MuJoCo Warp. Per epoch: the
+# reaching tasks ran with MJX-JAX physics, the NICOL tasks with MuJoCo Warp, each on one GPU. Per epoch: the
 # mean step of `process_seconds`; compile: the first epoch's `variant_seconds` less one epoch. The first NICOL run on
 # each machine (nicol_slide proprio_baseline, nicol_lift multimodal_baseline) compiled Warp's kernels into an empty
 # kernel cache, about 105 s that a grid pays once per machine and model: an over-estimate there.

@@ -25,7 +25,7 @@ from experiments import report
 
 # ----- learning curves (Fig. 4) ---------------------------------------------------------------
 # the budget: epochs per task, the same for every agent of the task (experiments.paper.curves); the reaching tasks'
-# are long enough for the visual agents' curves to level off (3 seeds, one H100: visual_bidal and visual_baseline
+# are long enough for the visual agents' curves to level off (3 seeds: visual_bidal and visual_baseline
 # on planar_reach 0.93-0.95 over epochs 81-100, 0.02 above epochs 71-80; on ur5_reach 0.81-0.83 over epochs
 # 141-150, near their plateau, still 0.02-0.06 up on every 10 epochs; docs/results.md, "How long the visual agents
 # reach")

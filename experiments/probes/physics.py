@@ -162,7 +162,7 @@ class NativeHelpers(NamedTuple):
 
 def _native_helpers(env: NicolEnv) -> NativeHelpers:
     """`env`'s NativeHelpers, made at the first call and kept on `env` (as `_mjx_rollouts` keeps its program): built
-    per call, they were traced and compiled again for each scenario, about 18 s each on the 2-core CPU."""
+    per call, they were traced and compiled again for each scenario."""
     if not hasattr(env, "_physics_check_native"):
         pairs = pair_geoms(env.mj_model)
         env._physics_check_native = NativeHelpers(

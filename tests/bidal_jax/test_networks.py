@@ -1,14 +1,43 @@
-"""Networks (bidal_jax/networks.py): each agent gets the networks it needs, the patch convolution
-equals Flax's, and the conv strides set the vision branch's feature map."""
+"""Networks (bidal_jax/networks.py): each agent gets the networks it needs, every conv implementation is a plain
+convolution and they are one another's, and the conv strides set the vision branch's feature map."""
 
-import flax.linen as nn
 import jax
 import numpy as np
 import pytest
 
 from bidal_jax.agents import ddpg
 from bidal_jax.config import AGENTS, CONV_IMPLS, NetworkConfig
-from bidal_jax.networks import PatchConv
+from bidal_jax.networks import PatchConv, parse_strides
+
+
+def default_layers() -> list[tuple[int, int, str]]:
+    """(input size, stride, padding) of each conv layer of the default strides on a 42×42 frame: the first
+    unpadded, the others 'same'-padded."""
+    first, *rest = parse_strides(NetworkConfig().conv_strides)
+    layers, size = [(42, first, "VALID")], (42 - 3) // first + 1
+    for stride in rest:
+        layers.append((size, stride, "SAME"))
+        size = -(-size // stride)
+    return layers
+
+
+DEFAULT_LAYERS = default_layers()
+
+
+def plain_conv(params: dict, x: jax.Array, stride: int, padding: str) -> jax.Array:
+    """XLA's convolution (`lax.conv_general_dilated`) of a `PatchConv`'s parameters, in full float32."""
+    kernel, bias = params["params"]["kernel"], params["params"]["bias"]
+    return jax.lax.conv_general_dilated(x, kernel, (stride, stride), padding, precision=jax.lax.Precision.HIGHEST,
+                                        dimension_numbers=("NHWC", "HWIO", "NHWC")) + bias
+
+
+def conv_case(size: int, stride: int, padding: str, impl: str) -> tuple[jax.Array, jax.Array]:
+    """(the conv `impl` of a 16-channel float32 frame, XLA's convolution of it), the same random parameters."""
+    x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 16), np.float32)
+    conv = PatchConv(16, stride=stride, padding=padding, impl=impl)
+    params = conv.init(jax.random.PRNGKey(1), x)
+    params = jax.tree.map(lambda p: p + jax.random.normal(jax.random.PRNGKey(2), p.shape), params)  # a bias too
+    return conv.apply(params, x), plain_conv(params, x, stride, padding)
 
 
 @pytest.mark.parametrize("agent", sorted(AGENTS))
@@ -21,23 +50,30 @@ def test_every_agent_builds_the_networks_it_needs(agent):
 
 
 @pytest.mark.parametrize("impl", CONV_IMPLS)
-@pytest.mark.parametrize(
-    "size, stride, padding",
-    [(42, 3, "VALID"), (14, 2, "SAME"), (7, 2, "SAME"), (4, 2, "SAME"), (10, 1, "SAME"), (11, 3, "VALID")],
-)
-def test_patch_conv_equals_flax_conv(size, stride, padding, impl):
-    x = jax.random.normal(jax.random.PRNGKey(0), (2, size, size, 3))
-    reference = nn.Conv(5, (3, 3), strides=(stride, stride), padding=padding)
-    params = reference.init(jax.random.PRNGKey(1), x)
-    ours = PatchConv(5, stride=stride, padding=padding, impl=impl).apply(params, x)
-    np.testing.assert_allclose(ours, reference.apply(params, x), atol=1e-5)
+@pytest.mark.parametrize("size, stride, padding",
+                         [*DEFAULT_LAYERS, (10, 1, "SAME"), (11, 3, "VALID"), (9, 2, "VALID"), (10, 3, "SAME")])
+def test_every_conv_impl_is_a_plain_convolution(size, stride, padding, impl):
+    """--conv-impl patch and banded, float32, on the default strides' layers and others: XLA's convolution of the
+    same kernel and bias, to float32 rounding."""
+    ours, plain = conv_case(size, stride, padding, impl)
+    assert ours.shape == plain.shape
+    np.testing.assert_allclose(ours, plain, rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("impl", ["taps", "native", "stacked", "banded"])
-@pytest.mark.parametrize("strides", ["3,2,2,2", "2,2,1,1"])
+@pytest.mark.parametrize("size, stride, padding", DEFAULT_LAYERS)
+def test_the_conv_impls_agree_with_each_other(size, stride, padding):
+    """patch and banded, float32, on the default strides' layers: the same output of the same parameters."""
+    patch, *others = [conv_case(size, stride, padding, impl)[0] for impl in CONV_IMPLS]
+    assert others
+    for other in others:
+        np.testing.assert_allclose(other, patch, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("impl", [impl for impl in CONV_IMPLS if impl != "patch"])
+@pytest.mark.parametrize("strides", ["3,2,2,1", "3,2,2,2", "2,2,1,1"])
 def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, impl):
-    """--conv-impl taps, native, stacked or banded: the parameter tree (a checkpoint) is the same as patch's, and so
-    are φ(s) and its gradients."""
+    """--conv-impl banded: the parameter tree (a checkpoint) is the same as patch's, and so are φ(s) and its
+    gradients."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_strides=strides, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
@@ -57,15 +93,15 @@ def test_every_conv_impl_is_the_same_encoder_with_the_same_parameters(strides, i
         np.testing.assert_allclose(a, b, atol=1e-4)
 
 
-@pytest.mark.parametrize("impl", ["stacked", "banded"])
+@pytest.mark.parametrize("impl", [impl for impl in CONV_IMPLS if impl != "patch"])
 def test_convs_under_the_seeds_vmap_are_the_seeds_own_encoders_and_gradients(impl):
-    """--conv-impl stacked or banded: under the seeds' vmap (each seed its parameters and frames) φ(s) and its
-    gradients are each seed's own, as with patch, though stacked runs the seeds' convs as one."""
+    """--conv-impl banded: under the seeds' vmap (each seed its parameters and frames) φ(s) and its gradients are
+    each seed's own, as with patch."""
     def networks(impl):
         config = NetworkConfig(conv_channels=4, latent_size=8, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
 
-    patch, stacked = networks("patch"), networks(impl)
+    patch, other = networks("patch"), networks(impl)
     params = jax.vmap(lambda key: patch.init(key)["encoder"])(jax.random.split(jax.random.PRNGKey(0), 3))
     images = jax.random.randint(jax.random.PRNGKey(1), (3, 5, 42, 42, 1), 0, 256).astype(np.uint8)
     proprio = jax.random.normal(jax.random.PRNGKey(2), (3, 5, 4))
@@ -73,9 +109,9 @@ def test_convs_under_the_seeds_vmap_are_the_seeds_own_encoders_and_gradients(imp
     def grads(nets):
         return jax.vmap(jax.grad(lambda p, i, q: (nets.encode(p, i, q) ** 2).sum()))(params, images, proprio)
 
-    np.testing.assert_allclose(jax.vmap(stacked.encode)(params, images, proprio),
+    np.testing.assert_allclose(jax.vmap(other.encode)(params, images, proprio),
                                jax.vmap(patch.encode)(params, images, proprio), atol=1e-5)
-    for a, b in zip(jax.tree.leaves(grads(stacked)), jax.tree.leaves(grads(patch)), strict=True):
+    for a, b in zip(jax.tree.leaves(grads(other)), jax.tree.leaves(grads(patch)), strict=True):
         np.testing.assert_allclose(a, b, atol=1e-4)
 
 

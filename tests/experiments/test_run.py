@@ -102,6 +102,34 @@ def test_help_names_every_env_and_agent_and_each_default_once(capsys):
     assert "(default: None)" not in out and "--num-envs NUM_ENVS" in out
 
 
+def test_help_opens_with_the_tasks_agents_and_presets_before_the_options():
+    """What a newcomer reads first: one line of usage, then what the command does, every agent and every task with
+    its preset's epochs (the first 15 lines), then that the presets override the defaults and that --print-config
+    prints the resolved config, before the first option."""
+    import envs_mjx
+    from bidal_jax.config import AGENTS, resolve
+
+    lines = cli.run_parser().format_help().splitlines()
+    head = "\n".join(lines[:15])
+    assert lines[0] == "usage: python -m experiments.run [options]"
+    for name in (*envs_mjx.names(), *AGENTS):
+        assert name in head, name
+    for env in envs_mjx.names():
+        line = next(line for line in lines if line.split()[:1] == [env])
+        assert f" {resolve({'env': env}).run.epochs} epochs " in line, line
+    options = lines.index("options:")
+    assert options < 25 and "preset" in head and "--print-config" in "\n".join(lines[:options])
+
+
+def test_the_options_a_preset_sets_say_their_default_comes_from_it():
+    from bidal_jax.config import RunConfig, TrainConfig
+
+    text = " ".join(cli.run_parser().format_help().split())
+    assert f"--epochs EPOCHS training epochs (default: the task's preset, else {RunConfig.epochs})" in text
+    assert f"(default: the task's preset, else {TrainConfig.num_envs})" in text
+    assert f"--seeds SEEDS seeds trained together as one vmapped program (default: {RunConfig.seeds})" in text
+
+
 def test_print_config_shows_the_preset_and_the_command_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     assert run.main(["--env", "nicol_slide", "--seeds", "3", "--print-config"]) == 0

@@ -29,7 +29,7 @@ BAD_COMMAND_LINES = {
         ["--conv-strides 2,2,1", "four comma-separated positive integers"],
     ),
     "zero conv stride": (["--conv-strides", "2,0,1,1"], ["--conv-strides 2,0,1,1", "four comma-separated"]),
-    "unknown conv implementation": (["--conv-impl", "fft"], ["--conv-impl fft", "one of patch, taps, native"]),
+    "unknown conv implementation": (["--conv-impl", "fft"], ["--conv-impl fft", "one of patch, banded"]),
     "zero actor lr": (["--actor-lr", "0"], ["--actor-lr 0.0", "positive number"]),
     "negative critic lr": (["--critic-lr", "-0.001"], ["--critic-lr -0.001", "positive number"]),
     "nan lr": (["--critic-lr", "nan"], ["--critic-lr nan", "positive number, not nan"]),
@@ -173,10 +173,10 @@ def test_bad_checkpoint_is_refused_and_left_alone(case, good_run, tmp_path, caps
 def test_resume_may_change_how_the_convs_are_computed_and_the_engine(good_run, capsys):
     """--conv-impl computes the same function with the same parameters and --physics steps the same model: a
     resumed run may switch them."""
-    assert run.main(["--print-config", "--resume", "--run-dir", str(good_run), "--conv-impl", "native",
+    assert run.main(["--print-config", "--resume", "--run-dir", str(good_run), "--conv-impl", "banded",
                      "--physics", "auto"]) == 0
     resumed = json.loads(capsys.readouterr().out)
-    assert (resumed["network"]["conv_impl"], resumed["run"]["physics"]) == ("native", "auto")
+    assert (resumed["network"]["conv_impl"], resumed["run"]["physics"]) == ("banded", "auto")
     saved = json.loads((good_run / "config.json").read_text())
     assert (saved["network"]["conv_impl"], saved["run"]["physics"]) == ("patch", "jax")
 
