@@ -165,8 +165,8 @@ class TrainConfig:
         Rule(int, lambda v: v >= 0, "an integer >= 0"),
     )
     intrinsic_lambda: float = doc(
-        1.0, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4); the paper leaves it open: 1 makes "
-        "|r_i| about a third of |r_e| on nicol_slide (docs/deviations.md, the λ sweep)",
+        0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4); the paper leaves it open: 0.1 "
+        "learned fastest of 0, 0.1, 0.3 and 1 over nicol_slide and nicol_lift (docs/deviations.md, the λ sweep)",
         NON_NEGATIVE,
     )
     forward_weight: float = doc(
@@ -236,19 +236,21 @@ def fields_help(cls: type) -> dict[str, str]:
     return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(cls)}
 
 
-def gpu_preset(num_envs: int, cycles_per_epoch: int, updates_per_cycle: int) -> dict[str, dict[str, Any]]:
-    """A NICOL task's preset, sized for one GPU: 100 epochs of `cycles_per_epoch` cycles of `num_envs` envs and
+def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cycle: int
+               ) -> dict[str, dict[str, Any]]:
+    """A NICOL task's preset, sized for one GPU: `epochs` epochs (the task's learning-curve budget,
+    `experiments.paper.protocol.EPOCHS`) of `cycles_per_epoch` cycles of `num_envs` envs and
     `updates_per_cycle` gradient updates of batch 2,048, a buffer of the most whole rollouts of `num_envs` episodes
     that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as banded matmuls in bfloat16
     (`NetworkConfig.conv_impl`, `vision_dtype`), the fastest image update on a GPU, with which nicol_slide and
     planar_reach learn as in float32 (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's
     devices are NVIDIA GPUs and warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than
-    MJX-JAX's there (docs/results.md, "MJX-JAX against MuJoCo Warp"); a checkpoint every 25 epochs instead of 5,
+    MJX-JAX's there (docs/results.md, "MJX-JAX against MuJoCo Warp"); a checkpoint every 10 epochs instead of 5,
     since one holds the replay buffer (7 GB of frames for 5 seeds) and its save costs about two nicol_slide epochs
     (docs/results.md, "What a checkpoint costs"). The CPU-sized tasks keep the defaults."""
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
              "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
-    return {"run": {"epochs": 100, "physics": "auto", "checkpoint_every": 25}, "train": train,
+    return {"run": {"epochs": epochs, "physics": "auto", "checkpoint_every": 10}, "train": train,
             "network": {"conv_impl": "banded", "vision_dtype": "bfloat16"}}
 
 
@@ -271,12 +273,12 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # fewer sequential physics steps: its epochs are shorter than those of 512 envs × 5 cycles (the same env steps
     # and updates), so multimodal_bidal reaches 0.9 as soon and a whole run ends sooner (docs/results.md, "Learning
     # speed on nicol_slide: the preset")
-    "nicol_slide": gpu_preset(2560, 1, 1600),
+    "nicol_slide": gpu_preset(30, 2560, 1, 1600),
     # nicol_lift and its reduced variant (the transfer target): 6,400 updates per epoch (one per 32 env steps), since
     # with 1,600 proprio_baseline (5 seeds) reached what sliding alone can score (0.125) only by epoch 53 instead of
     # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting")
     # they train under HER's pick-and-place protocol: half of the training episodes start with the cube held
-    **{name: merged(gpu_preset(2048, 2, 3200), {"train": {"exploration_starts": LIFT_HELD_STARTS}})
+    **{name: merged(gpu_preset(25, 2048, 2, 3200), {"train": {"exploration_starts": LIFT_HELD_STARTS}})
        for name in ("nicol_lift", "nicol_lift_reduced")},
 }
 # Per-agent overrides of the env presets, for agents that learn from images.

@@ -2,7 +2,8 @@
 
 - `load_run(run_dir)`: a run directory's `config.json` and `metrics.csv` as arrays, read through
   `bidal_jax.run.runfiles` (the one reader of run files): `NotARun` for a folder without a run with epochs,
-  `RunError` naming the file for a damaged one.
+  `RunError` naming the file for a damaged one. A folder of seed blocks (`seeds-A-B/`, runs of a grid cell's
+  seeds A to B, `experiments.paper.grid.blocks`) reads as one run of all their seeds (`merge_blocks`).
 - `curves(runs, label_by, labels, panel_by)`: one `Curve` per run (per-seed eval success
   against epochs, env steps and wall time), labelled and grouped into panels.
 - `final_per_seed`, `final_success`, `final_cell`, `time_to_threshold`, `normalized_auc`: a curve's figures
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import os
 import re
 from collections import Counter
@@ -38,6 +40,7 @@ from bidal_jax.run import runfiles
 
 X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
 SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
+BLOCK = re.compile(r"seeds-(\d+)-(\d+)$")  # a block's folder in its cell's: the indices of its first and last seed
 AIR = "eval_success_air"  # nicol_lift's success over its air goals alone (`Env.goal_subsets`)
 WITH_COMPILE = "wall_time_with_compile"
 
@@ -67,6 +70,50 @@ def _read(run_dir: str, config_path: str, metrics_path: str) -> tuple[dict, list
         raise RunError(str(err)) from None
 
 
+def block_name(first: int, last: int) -> str:
+    """The folder of the block of a cell's seeds `first` to `last` (indices in the cell), matched by `BLOCK`."""
+    return f"seeds-{first}-{last}"
+
+
+def block_dirs(run_dir: str) -> list[str]:
+    """The seed blocks in `run_dir` (`BLOCK`), by their first seed; [] where there are none."""
+    found = [(int(m.group(1)), name) for name in os.listdir(run_dir) if (m := BLOCK.match(name))] \
+        if os.path.isdir(run_dir) else []
+    return [os.path.join(run_dir, name) for _, name in sorted(found)]
+
+
+def merge_blocks(run_dir: str, blocks: Sequence[dict]) -> dict:
+    """One run of the seeds of `blocks` (`load_run`s of one cell, in seed order) over the epochs they all reached:
+    its seeds side by side, its times summed over the blocks (GPU time), its config the first block's with their
+    seeds counted together. RunError where the blocks are not of one task, agent and epoch size."""
+    first = blocks[0]
+    for block in blocks[1:]:
+        if (block["env"], block["agent"]) != (first["env"], first["agent"]):
+            raise RunError(f"{block['dir']}: a block of {block['env']} {block['agent']} beside "
+                           f"{first['env']} {first['agent']} in {run_dir}")
+    epochs = min(len(b["epoch"]) for b in blocks)
+    steps = first["env_steps"][:epochs]
+    for block in blocks:
+        if not np.allclose(block["env_steps"][:epochs], steps):
+            raise RunError(f"{block['dir']}: its env steps per epoch differ from those of {first['dir']}")
+
+    def joined(key: str, combine: Callable) -> np.ndarray | None:
+        parts = [b[key] for b in blocks]
+        return None if any(p is None for p in parts) else combine([p[:epochs] for p in parts])
+
+    seeds = sum(b["seeds"] for b in blocks)
+    config = {**first["config"], "run": {**first["config"]["run"], "seeds": seeds},
+              "blocks": [os.path.basename(b["dir"]) for b in blocks]}
+    summed = functools.partial(np.sum, axis=0)
+    return {
+        "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": first["env"],
+        "agent": first["agent"], "seeds": seeds, "epoch": first["epoch"][:epochs], "env_steps": steps,
+        "wall_time": joined("wall_time", summed), WITH_COMPILE: joined(WITH_COMPILE, summed),
+        "success": joined("success", functools.partial(np.concatenate, axis=1)),
+        "success_air": joined("success_air", functools.partial(np.concatenate, axis=1)),
+    }
+
+
 def load_run(run_dir: str) -> dict:
     """One run: its config, env, agent, seeds and per-epoch arrays.
 
@@ -78,6 +125,11 @@ def load_run(run_dir: str) -> dict:
     RunError (a damaged file), naming the path.
     """
     config_path, metrics_path = os.path.join(run_dir, "config.json"), os.path.join(run_dir, "metrics.csv")
+    if not os.path.lexists(config_path) and (blocks := block_dirs(run_dir)):
+        found = [run for run in map(_maybe_run, blocks) if run is not None]
+        if not found:
+            raise NotARun(f"{run_dir}: no block of its seeds has epochs yet")
+        return merge_blocks(run_dir, found)
     config, rows = _read(run_dir, config_path, metrics_path)
     try:
         env, agent, seeds = config["run"]["env"], config["run"]["agent"], int(config["run"]["seeds"])
@@ -103,6 +155,14 @@ def load_run(run_dir: str) -> dict:
         "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
         WITH_COMPILE: with_compile, "success": success, "success_air": air,
     }
+
+
+def _maybe_run(run_dir: str) -> dict | None:
+    """`load_run`, or None for a folder without epochs yet."""
+    try:
+        return load_run(run_dir)
+    except NotARun:
+        return None
 
 
 def physics_of(config: dict) -> list[str]:

@@ -12,6 +12,8 @@ AGENTS: dict[str, Agent] = {
     "multimodal_baseline": Agent(ddpg.DDPG, uses_image=True, uses_proprio=True),
     "visual_bidal": Agent(ddpg.BIDAL, uses_image=True, uses_proprio=False),
     "multimodal_bidal": Agent(ddpg.BIDAL, uses_image=True, uses_proprio=True),
+    # multimodal_bidal at λ = 0: the forward and inverse losses without their reward (an ablation, no paper agent)
+    "multimodal_bidal_no_ri": Agent(ddpg.BIDAL_NO_REWARD, uses_image=True, uses_proprio=True),
 }
 
 

@@ -9,6 +9,7 @@ Acting reads the encoder and the actor; a transfer maps the rows of the encoder'
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -30,8 +31,8 @@ def _networks(agent: Agent, config, proprio_size: int, goal_size: int, action_si
                          uses_image=agent.uses_image, uses_proprio=agent.uses_proprio, models=models)
 
 
-def _losses(networks: Networks, train, *, models: bool) -> dict[str, Loss]:
-    losses = make_losses(networks, train, models)
+def _losses(networks: Networks, train, *, models: bool, curiosity: bool) -> dict[str, Loss]:
+    losses = make_losses(networks, train if curiosity else dataclasses.replace(train, intrinsic_lambda=0.0), models)
     return {"representation": losses.representation, "actor": losses.actor}
 
 
@@ -40,11 +41,13 @@ def act(networks: Networks, params: dict, image: jax.Array | None, proprio: jax.
     return networks.actor(params["actor"], networks.encode(params.get("encoder"), image, proprio), goal)
 
 
-def family(models: bool) -> Family:
-    """DDPG + HER, with BidAL's forward and inverse models if `models`."""
+def family(models: bool, curiosity: bool = True) -> Family:
+    """DDPG + HER, with BidAL's forward and inverse models if `models`; their intrinsic reward (Eq. 4) too unless
+    `curiosity` is False (λ = 0: the models' losses still shape φ, the reward is r_e alone), which tells a gain of
+    the representation losses apart from one of the curiosity reward."""
     return Family(
         make_networks=functools.partial(_networks, models=models),
-        make_losses=functools.partial(_losses, models=models),
+        make_losses=functools.partial(_losses, models=models, curiosity=curiosity),
         update_order=UPDATE_ORDER,
         act=act,
         acting_networks=("encoder", "actor"),
@@ -55,3 +58,4 @@ def family(models: bool) -> Family:
 
 DDPG = family(models=False)
 BIDAL = family(models=True)
+BIDAL_NO_REWARD = family(models=True, curiosity=False)

@@ -5,24 +5,27 @@ every agent of a task.
         [--out results/curves] [--held-starts] [--dry-run | --report] [--last-n 10]
         [any learner or network option of experiments.run]
 
-The grid is the tasks planar_reach, ur5_reach, nicol_slide and nicol_lift × the five agents of
-`bidal_jax.config.AGENTS`; `--tasks` and `--agents` (comma lists) take a part of it. Each run
-is its task's seeds vmapped as one program, in OUT/<task>/<agent>: 5, and 10 on nicol_lift, whose
-fraction of seeds that lift the claims compare with an exact test (`protocol.SEEDS`; `--seeds N` sets every
-run's).
+The grid is the tasks planar_reach, ur5_reach, nicol_slide and nicol_lift × the agents of
+`bidal_jax.agents.AGENTS` (the paper's five and multimodal_bidal_no_ri, multimodal BidAL without its intrinsic
+reward: whether a gain comes from the representation losses or from the curiosity reward); `--tasks` and
+`--agents` (comma lists) take a part of it. Each cell is 5 seeds of one task and agent (`--seeds N` sets every
+cell's) in OUT/<task>/<agent>, trained in blocks of seeds vmapped as one program that each end within 20 minutes
+on one GPU by the plan's estimate (`protocol.BLOCK_SECONDS`, `grid.blocks`): a cell that fits is one run in its
+folder, a longer one is runs in OUT/<task>/<agent>/seeds-A-B with their own first seed, which the table, the
+figure and the claims read as one run of all its seeds (`report.load_run`).
 
-Budget: one epoch count per task for every agent (`EPOCHS`, overridden for all tasks by
-`--epochs`): planar_reach 100, ur5_reach 150, nicol_slide 100, nicol_lift 100. These are the env
-presets of bidal_jax/config.py except on the reaching tasks, whose presets (planar_reach 40, 20 for its image
-agents; ur5_reach 15) are sized for a run on a CPU: the grid runs them until the visual agents' curves level
-off, the same for every agent so that every curve of a panel covers the same env steps. The other settings are the env
-presets' (nicol_slide: 2,560 envs × 1 cycle, nicol_lift: 2,048 × 2, ...); learner and network
-options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to every run.
+Budget: one epoch count per task for every agent (`protocol.EPOCHS`, overridden for all tasks by `--epochs`):
+planar_reach 100, ur5_reach 150, nicol_slide 30, nicol_lift 25, where the slowest agent that learns levels off in
+pilot runs, plus a margin (docs/deviations.md, "Learning-curve budgets"). The NICOL tasks' are their env presets'
+(bidal_jax/config.py); the reaching tasks' presets (planar_reach 40, 20 for its image agents; ur5_reach 15) are
+sized for a run on a CPU, so the grid runs them until the visual agents' curves level off, the same for every agent
+so that every curve of a panel covers the same env steps. The other settings are the env presets' (nicol_slide:
+2,560 envs × 1 cycle, nicol_lift: 2,048 × 2, ...); learner and network options (e.g. `--num-envs 16
+--conv-channels 4`) and `--checkpoint-every` pass to every run.
 
-Faithful to the paper by default: no held starts. `--held-starts` runs nicol_lift with half of
-its training episodes starting with the cube held (`exploration_starts` 0.5; the other tasks are
-unchanged), a labelled variant the paper does not use, written to results/curves-held by default
-(with `--tasks nicol_lift` only that task trains).
+nicol_lift trains under HER's pick-and-place protocol, its preset's: half of its training episodes start with the
+cube held, evaluation always from reset (the paper is silent; docs/deviations.md). `--exploration-starts 0` runs
+the plain protocol instead, a labelled variant written to results/curves-plain by default.
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
 run dir, new/resume/done/stale) and its estimated time on one GPU running the runs one after another
@@ -67,16 +70,17 @@ import shlex
 import sys
 from typing import Any, Collection, Sequence
 
+import envs_mjx
 from bidal_jax.config import AGENTS, ConfigError, option
 from bidal_jax.run import multihost
 from experiments import cli, cluster, report
-from experiments.paper import grid
+from experiments.paper import grid, protocol
 from experiments.paper.grid import Arm
-from experiments.paper.protocol import DEFAULT_SEEDS, EPOCHS, SEEDS, TASKS  # the budget: epochs per task
+from experiments.paper.protocol import DEFAULT_SEEDS, EPOCHS, TASKS  # the budget: epochs per task
 
 PROG = "python -m experiments.paper.curves"
 STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
-HELD_TASK, HELD_STARTS = "nicol_lift", 0.5
+LIFT = "nicol_lift"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -84,9 +88,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})"
     )
-    parser.add_argument("--agents", default=",".join(AGENTS), help="comma list of agents (default all five)")
-    parser.add_argument("--seeds", type=int, default=None, help="seeds of every run, vmapped as one program "
-                        f"(default {DEFAULT_SEEDS}, nicol_lift {SEEDS['nicol_lift']})")
+    parser.add_argument("--agents", default=",".join(AGENTS), help=f"comma list of agents (default all: "
+                        f"{', '.join(AGENTS)})")
+    parser.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, help="seeds of every cell, in blocks of seeds "
+                        "vmapped as one program")
     parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
     parser.add_argument(
         "--epochs",
@@ -95,15 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="epochs of every run of every task (default per "
         "task: " + ", ".join(f"{t} {e}" for t, e in EPOCHS.items()) + ")",
     )
-    parser.add_argument(
-        "--out", default=None, help="output folder (default results/curves, or results/curves-held with --held-starts)"
-    )
-    parser.add_argument(
-        "--held-starts",
-        action="store_true",
-        help=f"{HELD_TASK} starts {HELD_STARTS:g} of its "
-        "training episodes with the cube held (a labelled variant; the paper has none)",
-    )
+    parser.add_argument("--out", default=None, help="output folder (default results/curves, or results/curves-plain "
+                        "with --exploration-starts 0)")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--dry-run", action="store_true", help="print the plan and its estimated time; write nothing")
     mode.add_argument(
@@ -119,18 +117,17 @@ def build_parser() -> argparse.ArgumentParser:
 def make_arms(
     tasks: Sequence[str], agents: Sequence[str], args: argparse.Namespace, extra: dict[str, Any], out: str
 ) -> list[Arm]:
-    """The runs, task by task in the grid's order, each with its task's epochs for every agent."""
+    """The cells, task by task in the grid's order, each with its task's epochs for every agent (training splits
+    them into blocks of seeds, `grid.blocks`)."""
     arms = []
     for task in (t for t in TASKS if t in tasks):
-        held = {"exploration_starts": HELD_STARTS} if args.held_starts and task == HELD_TASK else {}
         for agent in (a for a in AGENTS if a in agents):
             given = {
                 "env": task,
                 "agent": agent,
-                "seeds": args.seeds or SEEDS.get(task, DEFAULT_SEEDS),
+                "seeds": args.seeds,
                 "seed": args.seed,
                 **extra,
-                **held,
                 "epochs": args.epochs or EPOCHS[task],
                 "run_dir": os.path.join(out, task, agent),
             }
@@ -138,10 +135,10 @@ def make_arms(
     return arms
 
 
-def plan_text(arms: Sequence[Arm], envs: dict[str, Any]) -> str:
-    """The plan: one line per run with its estimated time (`grid.estimated_plan`), then the estimated total, and the
-    stale runs' count."""
-    return grid.estimated_plan(arms, envs, f"plan: {len(arms)} runs", named=False)
+def plan_text(blocks: Sequence[Arm], envs: dict[str, Any]) -> str:
+    """The plan: one line per block of seeds with its estimated time (`grid.estimated_plan`), then the estimated
+    total, and the stale runs' count."""
+    return grid.estimated_plan(blocks, envs, f"plan: {len(blocks)} runs", named=False)
 
 
 def seconds(run: dict) -> str:
@@ -197,8 +194,24 @@ def regenerate_command(args: argparse.Namespace, rest: Sequence[str], out: str) 
     chosen = [f"{option(name)} {getattr(args, name)}" for name in ("tasks", "agents", "seeds", "seed", "epochs",
                                                                           "last_n")
               if getattr(args, name) != parser.get_default(name)]
-    held = ["--held-starts"] if args.held_starts else []
-    return " ".join([PROG, "--report", *chosen, *held, *map(shlex.quote, rest), f"--out {out}"])
+    return " ".join([PROG, "--report", *chosen, *map(shlex.quote, rest), f"--out {out}"])
+
+
+def lift_note(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> list[str]:
+    """The lines below the table on lifting: per agent on nicol_lift, its final success over air goals beside what
+    a policy that never lifts scores there, and how many of its seeds lift (`protocol.seeds_that_lift`); none
+    without a nicol_lift run that reports air goals."""
+    cells = [(arm.given["agent"], run) for arm in arms if arm.given["env"] == LIFT
+             and (run := runs.get(arm.name)) is not None and run["success_air"] is not None]
+    if not cells:
+        return []
+    floor = envs_mjx.make(LIFT, render=False).never_lift_success()["air"]
+    parts = [f"{agent} {run['success_air'][-last_n:].mean():.3f}, "
+             f"{protocol.seeds_that_lift(run['success_air'], last_n)} of {run['seeds']} seeds lift"
+             for agent, run in cells]
+    return [f"{LIFT}, air goals alone (evaluation from reset; a policy that never lifts scores {floor:.3f}): final "
+            f"success over the last {last_n} epochs and the seeds that lift (their air-goal success ≥ "
+            f"{protocol.LIFTS} there): " + "; ".join(parts) + ".", ""]
 
 
 def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: dict[str, str | None],
@@ -222,6 +235,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         "",
         results_table(arms, runs, last_n, stale),
         "",
+        *lift_note(arms, runs, last_n),
         *stale_note(stale, len(runs)),
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
         f"Total wall time of the runs: {grid.duration(total)}.",
@@ -235,31 +249,32 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
-    out = grid.out_dir(args, "curves")
     try:
+        out = grid.out_dir(args, "curves", grid.pass_through(rest, PROG))
         cluster.prepare_driver(args)
         multihost.initialize()
         tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
         agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
-        arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
+        cells = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
+        blocks = [block for cell in cells for block in grid.blocks(cell)]
     except ConfigError as err:
         return cli.exit_code(err)
     code, envs = 0, None
     try:
         if not args.report:
-            envs = grid.make_envs(arms)
-            print(plan_text(arms, envs), flush=True)
+            envs = grid.make_envs(blocks)
+            print(plan_text(blocks, envs), flush=True)
             if args.dry_run:
                 print(grid.DRY_RUN)
                 return 0
-            code = grid.train_arms(arms, envs, args)
-        variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
+            code = grid.train_arms(blocks, envs, args)
+        variant = f", {LIFT} without held starts" if out.endswith(grid.PLAIN) else ""
         title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
         if multihost.is_main():  # one process writes the results
             # each task's physics today: of the envs built to train, else (--report) built for it
-            today = ({arm.given["env"]: envs[arm.name].physics_id for arm in arms} if envs
-                     else grid.physics_today(arm.given["env"] for arm in arms))
-            grid.write_table(out, plot_results(out, arms, title, args.last_n, today,
+            today = ({block.given["env"]: envs[block.name].physics_id for block in blocks} if envs
+                     else grid.physics_today(cell.given["env"] for cell in cells))
+            grid.write_table(out, plot_results(out, cells, title, args.last_n, today,
                                                regenerate_command(args, rest, out)))
     except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)
         failed = cli.exit_code(err)

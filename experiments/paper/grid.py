@@ -41,13 +41,12 @@ from bidal_jax.config import (
 from bidal_jax.run import checkpoint, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
-from experiments.paper.protocol import DEFAULT_SEEDS
+from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS
 
-# what passes through to every run: the learner and network options (the exploration starts are
-# each experiment's --held-starts) and the checkpoint interval
-PASS_THROUGH = frozenset(
-    {f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)} - {"exploration_starts"}
-) | {"checkpoint_every"}
+# what passes through to every run: the learner and network options and the checkpoint interval
+PASS_THROUGH = frozenset({f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)}) \
+    | {"checkpoint_every"}
+PLAIN = "plain"  # the suffix of an experiment's folder when its lifting runs start no episode held
 # config fields that cannot change what a run learns or reports, so `stale` does not compare them: where it is
 # written (run_dir) and where its transfer source lies (init_from: a path; the source's own config is its
 # folder's), how often it saves a checkpoint, how its envs are laid out across devices (env_shards: its
@@ -113,14 +112,14 @@ def pass_through(argv: Sequence[str], prog: str) -> dict[str, Any]:
     # unset options are None; flags (--quiet, --resume, ...) are False unless given
     given = {k: v for k, v in vars(parser.parse_args(list(argv))).items() if v is not None and v is not False}
     for name in sorted(set(given) - PASS_THROUGH):
-        hint = "use --held-starts" if name == "exploration_starts" else "the experiment sets it"
-        raise ConfigError(f"{option(name)}: not passed through to the runs ({hint})")
+        raise ConfigError(f"{option(name)}: not passed through to the runs (the experiment sets it)")
     return given
 
 
-def out_dir(args: argparse.Namespace, name: str) -> str:
-    """--out, or results/NAME (results/NAME-held for the --held-starts variant)."""
-    return args.out or os.path.join("results", f"{name}-held" if args.held_starts else name)
+def out_dir(args: argparse.Namespace, name: str, given: dict[str, Any]) -> str:
+    """--out, or results/NAME (results/NAME-plain for the plain lifting protocol, `--exploration-starts 0`)."""
+    plain = given.get("exploration_starts") == 0
+    return args.out or os.path.join("results", f"{name}-{PLAIN}" if plain else name)
 
 
 def checked_arms(args: argparse.Namespace, rest: Sequence[str], prog: str,
@@ -292,6 +291,29 @@ def estimate(arm: Arm, progress: Status) -> float:
     per_epoch, compile_s = SECONDS[arm.given["env"]][kind(arm.given["env"], arm.given["agent"])]
     per_epoch *= arm.config.run.seeds / DEFAULT_SEEDS  # measured at 5 seeds; more cost at most in proportion
     return compile_s + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
+
+
+def block_seeds(arm: Arm, limit: float = BLOCK_SECONDS) -> int:
+    """The most of the arm's seeds that one run trains within `limit` seconds by `estimate` (at least one)."""
+    per_epoch, compile_s = SECONDS[arm.given["env"]][kind(arm.given["env"], arm.given["agent"])]
+    per_seed = per_epoch / DEFAULT_SEEDS * arm.epochs
+    return max(1, min(arm.config.run.seeds, int((limit - compile_s) // per_seed)))
+
+
+def blocks(arm: Arm, limit: float = BLOCK_SECONDS) -> list[Arm]:
+    """The arm's seeds as runs that each end within `limit` seconds (`block_seeds`): the arm itself where they fit
+    in one, else blocks of as even sizes as can be, each a run named NAME/seeds-A-B in RUN_DIR/seeds-A-B, A to B
+    its seeds' indices in the arm, first seed `seed` + A (`report.load_run` merges them back into the arm's run)."""
+    seeds = arm.config.run.seeds
+    count = -(-seeds // block_seeds(arm, limit))
+    if count == 1:
+        return [arm]
+    sizes = [seeds // count + (i < seeds % count) for i in range(count)]
+    starts = [sum(sizes[:i]) for i in range(count)]
+    first = arm.config.run.seed
+    return [dataclasses.replace(arm, name=f"{arm.name}/{report.block_name(a, a + n - 1)}", given={
+        **arm.given, "seeds": n, "seed": first + a,
+        "run_dir": os.path.join(arm.run_dir, report.block_name(a, a + n - 1))}) for a, n in zip(starts, sizes)]
 
 
 def duration(seconds: float) -> str:

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import envs_mjx
-from bidal_jax.config import ConfigError, resolve
+from bidal_jax.config import ConfigError
 from bidal_jax.run import multihost, rundir, runfiles
 from experiments import cli, cluster, report
 from experiments.paper import grid
@@ -52,6 +52,7 @@ from experiments.paper.grid import Arm
 from experiments.paper.protocol import (
     KAPPAS,
     LAST_N,
+    NOISE_EPOCHS,
     PAPER,
     SEGMENTS,
     kappa_dir,
@@ -184,7 +185,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="comma list of κ, each trained as its own program of --runs runs into "
                         "OUT/<agent>-kappaNN (about a grid cell's time, where all three κ in one program take "
                         "three); default: all three κ in one program per agent, in OUT/<agent>")
-    parser.add_argument("--epochs", type=int, default=None, help="epochs per run (default: the env preset's)")
+    parser.add_argument("--epochs", type=int, default=None, help=f"epochs per run (default {NOISE_EPOCHS}: "
+                        "the widest window of the final success after the curves level off)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
     for name in SIZE_OPTIONS:
@@ -206,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     given = {"env": args.env, "seed": args.seed, "noise_segments": args.noise_segments,
              **{k: getattr(args, k) for k in (*SIZE_OPTIONS, "checkpoint_every") if getattr(args, k) is not None}}
-    given["epochs"] = args.epochs or resolve(given).run.epochs
+    given["epochs"] = args.epochs or NOISE_EPOCHS
     if args.report:
         return report_or_error(lambda: print(write_report(args.out) or f"no noise runs in {args.out}: nothing written"))
     try:

@@ -2,7 +2,7 @@
 from the representation of a sliding run.
 
     python -m experiments.paper.transfer_learning [--seeds 5] [--out results/transfer] [--source RUN_DIR]
-        [--source-epochs N] [--epochs N] [--init-normaliser fresh|inherit] [--held-starts]
+        [--source-epochs N] [--epochs N] [--init-normaliser fresh|inherit]
         [--arms source,transfer,scratch] [--dry-run]
         [any learner or network option of experiments.run]
 
@@ -16,9 +16,10 @@ Three runs of multimodal BidAL, each `--seeds` seeds vmapped as one program, in 
   source's, rows matched alike, with `--init-normaliser inherit` (recorded in its config.json);
 - `scratch/`: the same run from a fresh start: same seeds, epochs and settings.
 
-Faithful to the paper by default: no held starts (`exploration_starts` 0 in both arms);
-`--held-starts` runs both arms with half of the training episodes starting with the cube held
-(0.5), a labelled variant written to results/transfer-held by default. Learner and network
+Both arms train under HER's pick-and-place protocol, the lifting tasks' preset: half of their training
+episodes start with the cube held, evaluation from reset (the paper is silent; docs/deviations.md);
+`--exploration-starts 0` runs the plain protocol, a labelled variant written to results/transfer-plain by
+default. Learner and network
 options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to all three runs.
 
 Then, from whatever runs have epochs, it writes `success.png` and `success.csv` (eval success
@@ -69,14 +70,13 @@ from experiments.paper.grid import Arm
 from experiments.paper.protocol import AGENT, SOURCE_ENV, TARGET_ENV, THRESHOLDS, seed_measures
 
 PROG = "python -m experiments.paper.transfer_learning"
-HELD_STARTS = 0.5
 ARMS = ("source", "transfer", "scratch")
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = grid.experiment_parser(PROG, __doc__, "all three runs")
-    parser.add_argument("--out", default=None, help="output folder (default results/transfer, or results/transfer-held "
-                        "with --held-starts)")
+    parser.add_argument("--out", default=None, help="output folder (default results/transfer, or "
+                        "results/transfer-plain with --exploration-starts 0)")
     parser.add_argument("--source", default=None, metavar="RUN_DIR", help="a nicol_slide run to transfer from "
                         "instead of training OUT/source")
     parser.add_argument("--source-checkpoint", default=None, help="the source's checkpoint: a step or 'best' "
@@ -88,8 +88,6 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
     parser.add_argument("--init-normaliser", default=RunConfig.init_normaliser, choices=INIT_NORMALISERS,
                         help="the transfer arm's proprio normaliser: fresh (zero counts) or inherit (the source's)")
-    parser.add_argument("--held-starts", action="store_true", help=f"both arms start {HELD_STARTS:g} of their "
-                        "training episodes with the cube held (a labelled variant; the paper has none)")
     parser.add_argument("--arms", default=",".join(ARMS), help="the runs this command trains, a comma list of "
                         f"{', '.join(ARMS)} (default all; the others are only read for the results), so that "
                         "runs can be trained by separate processes at once; 'none' only writes the results")
@@ -112,7 +110,7 @@ def source_dir(args: argparse.Namespace, out: str) -> str:
 def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list[Arm]:
     """The runs to make, in training order, with every config field they set (epochs resolved)."""
     common = {"agent": AGENT, "seeds": args.seeds, "seed": args.seed, **extra}
-    target = {**common, "env": TARGET_ENV, "exploration_starts": HELD_STARTS if args.held_starts else 0.0}
+    target = {**common, "env": TARGET_ENV}  # its preset's held starts, unless --exploration-starts 0 is passed
     source_ref = source_dir(args, out) + (f":{args.source_checkpoint}" if args.source_checkpoint else "")
     runs = [] if args.source else [("source", {**common, "env": SOURCE_ENV}, args.source_epochs)]
     runs += [
@@ -220,7 +218,7 @@ def difference_notes(transfer: report.Curve, scratch: report.Curve, warning: Seq
 def regenerate_command(args: argparse.Namespace, out: str) -> str:
     """The command that rewrites table.md, success.png and success.csv from the run folders alone."""
     options = [f"--out {out}", f"--seeds {args.seeds}" if args.seeds != 5 else "",
-               "--held-starts" if args.held_starts else "", f"--last-n {args.last_n}" if args.last_n != 10 else ""]
+               f"--last-n {args.last_n}" if args.last_n != 10 else ""]
     return " ".join([PROG, "--arms none", *filter(None, options)])
 
 
@@ -261,8 +259,8 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
 
 def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
-    out = grid.out_dir(args, "transfer")
     try:
+        out = grid.out_dir(args, "transfer", grid.pass_through(rest, PROG))
         cluster.prepare_driver(args)
         multihost.initialize()
         train_names = parse_arms(args.arms)
@@ -285,7 +283,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args)
     except ConfigError as err:
         code = cli.exit_code(err)
-    variant = ", held starts" if args.held_starts else ""
+    variant = ", no held starts" if out.endswith(grid.PLAIN) else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results
         try:
