@@ -67,7 +67,16 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the printed final success")
     parser.add_argument("--threshold", type=float, help="also print when each mean curve first reaches this")
     parser.add_argument("--title", default="", help="figure title")
+    parser.add_argument("--air-goals", action="store_true", help="plot and print the success over air goals alone "
+                        "(nicol_lift's lifting skill, metrics.csv's eval_success_air)")
     return parser
+
+
+def air_goals(run: dict) -> dict:
+    """The run with its success over air goals as its success; ValueError for a run without them."""
+    if run["success_air"] is None:
+        raise ValueError(f"{run['dir']}: --air-goals: its metrics.csv has no success over air goals")
+    return {**run, "success": run["success_air"]}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -76,7 +85,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.last_n < 1:
             raise ValueError(f"--last-n {args.last_n}: must be a positive integer")
         runfiles.check_output_dir(os.path.dirname(args.out), "--out")
-        runs = [load_run(d) for d in args.run_dirs]
+        runs = [air_goals(load_run(d)) if args.air_goals else load_run(d) for d in args.run_dirs]
         labels = dict(args.label)
         cs = curves(runs, args.label_by, labels, args.panel_by)
         with rundir.writing(f"{args.out}.png and {args.out}.csv"):

@@ -76,6 +76,8 @@ PROG = "python -m experiments.paper.claims"
 LEARNED = 0.5  # final success at which a run has learned its task
 BIDAL = ("visual_bidal", "multimodal_bidal")
 OURS, VISUAL, LIFT = "multimodal_bidal", "visual_baseline", "nicol_lift"
+ABLATION = "multimodal_bidal_no_ri"  # OURS without the intrinsic reward (λ = 0): no paper agent, never "the best other"
+PAPER_AGENTS = tuple(a for a in AGENTS if a != ABLATION)
 NOISE_KAPPAS = (0.10, 0.15)
 BASELINES = ("multimodal_baseline", "proprio_baseline")
 FAVOURS, AGAINST, UNCLEAR = "favours", "against", "unclear"
@@ -213,7 +215,7 @@ def air_note(overall: Sequence[str]) -> str:
 
 
 def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale: set[str]) -> list[Claim]:
-    """Claim (a): five rows, from the curves grid."""
+    """Claim (a): six rows, from the curves grid, the last on where a gain of OURS comes from (`reward_claim`)."""
     measured = grid_figures(runs, last_n)
     final = {key: f[FINAL][0] for key, f in measured.figures.items()}
     gaps, tasks = grid_gaps(runs), set(protocol.TASKS)
@@ -231,28 +233,44 @@ def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale
         paper = "learn all tasks (Fig. 4)" if learns else "fails to learn any task (Fig. 4)"
         rows.append(Claim(name, ours, paper, judged(checks or [UNCLEAR], gaps, tasks, stale), rule))
     rows += best_claims(measured, gaps, stale, last_n)
-    return rows
+    return [*rows, reward_claim(measured, gaps, stale)]
+
+
+def reward_claim(measured: Grid, gaps: list[str], stale: set[str]) -> Claim:
+    """Where a gain of OURS comes from: OURS against ABLATION, the same agent without the intrinsic reward (its
+    forward and inverse losses kept), in every measure of `speed` over the tasks both ran. Favoured: the reward
+    itself helps; unclear or against: any gain over the baselines is the representation losses'."""
+    tasks = [t for t in protocol.TASKS if (t, OURS) in measured.figures and (t, ABLATION) in measured.figures]
+    name, paper = f"(a) {OURS} learns faster than {ABLATION} (λ = 0)", "not tested (the paper has no λ = 0 agent)"
+    rule = speed_rule("every check favours").replace("the best other agent in that measure", ABLATION)
+    if not tasks:
+        return Claim(name, "—", paper, f"{NOT_MEASURED}: no {OURS} run beside an {ABLATION} run", rule)
+    checks, texts = speed(measured.figures, measured.budgets, tasks, share=True, other=ABLATION)
+    rule += f"; each the mean over tasks, steps as a share of each run's budget; {air_note(measured.overall)}"
+    return Claim(name, "mean over tasks: " + "; ".join(texts), paper, judged(checks, gaps, set(tasks), stale), rule)
 
 
 def best_other(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool) -> str:
-    """The agent other than OURS, with a run on every one of `tasks`, whose seeds' `values` are best on average over
-    them (largest, or smallest where `higher` is False)."""
-    others = [a for a in AGENTS if a != OURS and all((t, a) in values for t in tasks)]
+    """The paper's agent other than OURS, with a run on every one of `tasks`, whose seeds' `values` are best on
+    average over them (largest, or smallest where `higher` is False)."""
+    others = [a for a in PAPER_AGENTS if a != OURS and all((t, a) in values for t in tasks)]
     return (max if higher else min)(others, key=lambda a: np.mean([values[t, a].mean() for t in tasks]))
 
 
-def margin(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool, digits: int = 3
-           ) -> tuple[str, str, float, float]:
-    """(the best other agent by the mean over `tasks` of its seeds' `values`, text, low, high) of OURS − that
-    agent (`difference`: seeds resampled within each task); `higher`: whether larger values are better."""
-    best = best_other(values, tasks, higher)
+def margin(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool, digits: int = 3,
+           other: str | None = None) -> tuple[str, str, float, float]:
+    """(`other`, by default the best other agent by the mean over `tasks` of its seeds' `values`, text, low, high)
+    of OURS − that agent (`difference`: seeds resampled within each task); `higher`: whether larger values are
+    better."""
+    best = other or best_other(values, tasks, higher)
     text, low, high = difference([values[t, OURS] for t in tasks], [values[t, best] for t in tasks], digits)
     return best, text, low, high
 
 
 def speed(figures: dict[tuple[str, str], Figures], budgets: dict[tuple[str, str], float], tasks: Sequence[str],
-          share: bool) -> tuple[list[str], list[str]]:
-    """(checks, texts) of OURS against the best other agent in each of `MEASURES` over `tasks`: final success and
+          share: bool, other: str | None = None) -> tuple[list[str], list[str]]:
+    """(checks, texts) of OURS against `other`, by default the best other agent in each of `MEASURES`, over `tasks`:
+    final success and
     AUC larger, env steps to each of `SPEED` fewer (`share`: as a share of each run's budget, so that tasks of
     other lengths weigh alike), each by its bootstrap 95 % interval; a text names the censored seeds."""
     checks, texts = [], []
@@ -260,7 +278,7 @@ def speed(figures: dict[tuple[str, str], Figures], budgets: dict[tuple[str, str]
         higher = name in (FINAL, AUC)
         values = {key: f[name][0] / (budgets[key] if share and not higher else 1.0) for key, f in figures.items()}
         digits = 3 if higher or share else 0
-        best, text, low, high = margin(values, tasks, higher, digits)
+        best, text, low, high = margin(values, tasks, higher, digits, other)
         censored = sum(int(figures[t, a][name][1].sum()) for t in tasks for a in (OURS, best))
         seeds = sum(figures[t, a][name][1].size for t in tasks for a in (OURS, best))
         label = f"{name} (share of the budget)" if share and not higher else name
@@ -286,7 +304,7 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -
     names = ((f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
              (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"),
              (f"(a) more of {OURS}'s seeds lift than of any other agent", "especially on lifting (Fig. 4)"))
-    if not tasks or not any(all((t, a) in figures for t in tasks) for a in AGENTS if a != OURS):
+    if not tasks or not any(all((t, a) in figures for t in tasks) for a in PAPER_AGENTS if a != OURS):
         why = f"{NOT_MEASURED}: no {OURS} run beside another agent's on the same tasks"
         return [Claim(c, "—", p, why, "") for c, p in names]
     checks, texts = speed(figures, measured.budgets, tasks, share=True)
@@ -325,7 +343,7 @@ def lifting_claim(final: dict[tuple[str, str], np.ndarray], overall: Sequence[st
     counted_seeds = {a: (lifts(final[LIFT, a], a in overall), final[LIFT, a].size) for a in agents}
     share = {a: f"{a} {k}/{n} {stats.interval_text(*stats.wilson_interval(k, n))}"
              for a, (k, n) in counted_seeds.items()}
-    others = [a for a in agents if a != OURS]
+    others = [a for a in agents if a not in (OURS, ABLATION)]
     rule = (f"a seed lifts when its success over air goals over its last {last_n} epochs is ≥ {LIFTS} (runs "
             f"without {report.AIR}: overall success ≥ {LIFTS_OVERALL}); Fisher's exact test (two-sided) of {OURS}'s "
             f"lifting seeds against those of the other agent with the largest share: favours when p < {ALPHA} and "

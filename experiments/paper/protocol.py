@@ -90,10 +90,11 @@ def steadiness(curve: report.Curve, last_n: int) -> np.ndarray:
     return curve.success[-last_n:].std(axis=0)
 
 
-def budget(run: dict) -> int:
-    """A run's epoch budget: its config's epochs, or its env and agent preset's (this experiment's default) if more."""
-    preset = resolve({"env": run["env"], "agent": run["agent"]}).run.epochs
-    return max(int(run["config"]["run"].get("epochs", 0)), preset)
+def budget(run: dict, default: int | None = None) -> int:
+    """A run's epoch budget: its config's epochs, or its experiment's `default` if more (by default its env and
+    agent preset's)."""
+    default = default or resolve({"env": run["env"], "agent": run["agent"]}).run.epochs
+    return max(int(run["config"]["run"].get("epochs", 0)), default)
 
 
 def load_noise_curves(out: str) -> tuple[dict[tuple[float, str], report.Curve], dict[str, int]]:
@@ -106,7 +107,7 @@ def load_noise_curves(out: str) -> tuple[dict[tuple[float, str], report.Curve], 
         if not os.path.isfile(os.path.join(run_dir, "metrics.csv")):
             return
         run = report.load_run(run_dir)
-        budgets[run["agent"]] = max(budgets.get(run["agent"], 0), budget(run))
+        budgets[run["agent"]] = max(budgets.get(run["agent"], 0), budget(run, NOISE_EPOCHS))
         for k, curve in curves(run):
             if (k, run["agent"]) in found:
                 raise report.RunError(f"{run_dir}: {run['agent']} at κ {k:.0%} is also in "

@@ -67,6 +67,37 @@ def test_epoch_compiles_once_runs_several_seeds_and_mixes_exploration_starts(age
     assert not np.array_equal(np.asarray(leaves[0][0]), np.asarray(leaves[0][1]))
 
 
+class MarkedStartPlanarReach(PlanarReach):
+    """planar_reach whose exploration start marks its goal (x = 9, out of reach) and whose success metric is that
+    mark: an episode succeeds exactly when it began from `exploration_reset`."""
+
+    has_exploration_start = True
+    MARK = 9.0
+
+    def _exploration_reset_data(self, key):
+        data, goal = self._reset_data(key)
+        return data, goal.at[0].set(self.MARK)
+
+    def step(self, state, action):
+        state = super().step(state, action)
+        marked = (state.info["goal"][0] == self.MARK).astype(state.metrics["success"].dtype)
+        return state.replace(metrics={**state.metrics, "success": marked})
+
+
+def test_training_starts_held_in_about_half_of_the_episodes_and_evaluation_never():
+    """With exploration_starts 0.5 (the lifting preset's), about half of the training episodes begin from the
+    exploration start, each counted under its start kind, and no evaluation episode does."""
+    train = dataclasses.replace(TINY, num_envs=64, buffer_episodes=128, eval_envs=64, exploration_starts=0.5)
+    init, epoch = make_seeded(*make_train(MarkedStartPlanarReach(render=False),
+                                          Config(RunConfig(agent="proprio_baseline"), train, NetworkConfig())))
+    state, metrics = epoch(init(jax.random.split(jax.random.PRNGKey(3), 2)))
+    held = np.asarray(metrics["train_success"])  # the share of the 128 training episodes of each seed begun held
+    assert ((held > 0.35) & (held < 0.65)).all(), held
+    assert np.asarray(metrics["train_success_held"]).tolist() == [1.0, 1.0]
+    assert np.asarray(metrics["train_success_table"]).tolist() == [0.0, 0.0]
+    assert np.asarray(metrics["eval_success"]).tolist() == [0.0, 0.0]
+
+
 class GradedPlanarReach(PlanarReach):
     """planar_reach whose success metric is the final distance to the goal: an evaluation result that
     differs wherever one step of one episode does."""

@@ -86,8 +86,10 @@ def test_cube_starts_and_lift_goals_follow_the_contract(lift, lift_resets):
     # HER's pick-and-place goals: half on the table (where the resting cube's centre is), half 5-25 cm above it
     height = goal[:, 2] - nicol.TABLE_HEIGHT
     on_table = np.isclose(height, nicol.CUBE_HALF, atol=1e-6)
-    air = np.asarray(lift.goal_subsets(jnp.asarray(goal))["air"])
+    subsets = lift.goal_subsets(jnp.asarray(goal))
+    air = np.asarray(subsets["air"])
     np.testing.assert_array_equal(air, ~on_table)
+    np.testing.assert_array_equal(np.asarray(subsets["table"]), on_table)
     assert abs(air.mean() - 0.5) < 4 * np.sqrt(0.25 / len(air))
     assert height[air].min() >= nicol.LIFT_HEIGHT[0] - 1e-6 and height[air].max() <= nicol.LIFT_HEIGHT[1] + 1e-6
     assert abs(np.median(height[air]) - np.mean(nicol.LIFT_HEIGHT)) < 0.02  # uniform over the range
@@ -104,7 +106,7 @@ def test_the_never_lift_floor_is_the_success_of_the_resting_cube_under_each_goal
     slid = np.asarray(lift.compute_reward(jnp.asarray(resting), jnp.asarray(goal))) == 0.0
     air = np.asarray(lift.goal_subsets(jnp.asarray(goal))["air"])
     floor = lift.never_lift_success()
-    assert floor == pytest.approx({"all": 0.5625, "air": 0.125})
+    assert floor == pytest.approx({"all": 0.5625, "air": 0.125, "table": 1.0})
     assert abs(slid[air].mean() - floor["air"]) < 4 * np.sqrt(floor["air"] * (1 - floor["air"]) / air.sum())
     assert slid[~air].all()
     assert NicolLift(render=False, air_goal_probability=1.0).never_lift_success()["all"] == 0.125

@@ -17,7 +17,7 @@ from experiments import report
 from experiments.paper import claims, protocol
 from tests.conftest import TODAY, write_fake_run
 
-EPOCHS = 100  # the NICOL presets' budget, which the fake runs must reach to be measured
+EPOCHS = 100  # longer than every budget of a noise or transfer run, which the fake runs must reach to be measured
 
 
 @pytest.fixture(autouse=True)
@@ -71,9 +71,9 @@ def test_transfer_verdicts(tmp_path, fake_run, transfer_rate, scratch_rate, expe
 def test_transfer_not_measured_when_an_arm_is_missing_or_short_and_stale_tasks_qualify(tmp_path, fake_run):
     write_transfer(fake_run, tmp_path / "missing", 0.1, 0.02, scratch_epochs=0)
     assert claims.transfer_claims(str(tmp_path / "missing"), set())[0].verdict == "not measured: scratch missing"
-    write_transfer(fake_run, tmp_path / "short", 0.1, 0.02, scratch_epochs=30)
+    write_transfer(fake_run, tmp_path / "short", 0.1, 0.02, scratch_epochs=10)
     steps = claims.transfer_claims(str(tmp_path / "short"), {"nicol_lift_reduced"})[0]
-    assert steps.verdict == ("not measured: scratch short (30 of 100 epochs); measured on nicol_lift_reduced runs "
+    assert steps.verdict == ("not measured: scratch short (10 of 25 epochs); measured on nicol_lift_reduced runs "
                              "not recorded on today's physics")
     assert "[" in steps.ours  # the figure and its interval are shown all the same
     write_transfer(fake_run, tmp_path / "stale", 0.1, 0.02)
@@ -87,7 +87,7 @@ def write_grid(fake_run, out):
     against 0.05, up to its level): a larger AUC, fewer env steps to 0.5 and 0.9."""
     for task in protocol.TASKS:
         lift = task == "nicol_lift"
-        level = {"multimodal_bidal": 0.97, "visual_bidal": 0.7, "visual_baseline": 0.1,
+        level = {"multimodal_bidal": 0.97, "multimodal_bidal_no_ri": 0.9, "visual_bidal": 0.7, "visual_baseline": 0.1,
                  "multimodal_baseline": 0.6 if lift else 0.9, "proprio_baseline": 0.5 if lift else 0.85}
         for agent in AGENTS:
             levels = [level[agent] + 0.01 * (i - 2) for i in range(5)]
@@ -114,7 +114,7 @@ def test_the_command_writes_every_claim_reproduced_where_the_runs_agree_with_the
     assert claims.main(argv) == 0
     text = open(out).read()
     table = [line for line in text.splitlines() if line.startswith("| (")]
-    assert len(table) == 9 and all(line.split(" | ")[3] == "reproduced" for line in table)
+    assert len(table) == 10 and all(line.split(" | ")[3] == "reproduced" for line in table)
     assert f"Regenerate: `python -m experiments.paper.claims {' '.join(argv)}`" in text
     assert "lowest: visual_bidal" in text and "0.700 [" in text
     assert claims.main([*argv, "--stale", "nicol_lift,bogus"]) == 2
@@ -130,7 +130,7 @@ def test_noise_claims_reversed_when_a_baseline_is_the_steady_one_and_not_measure
     for agent in protocol.NOISE_AGENTS:
         fake_run(str(short / agent), "nicol_slide", rows([0.5] * 15, epochs=19), None, agent)
     assert claims.noise_claims(str(short), set())[0].verdict.startswith(
-        "not measured: multimodal_bidal short (19 of 100 epochs)")
+        "not measured: multimodal_bidal short (19 of 45 epochs)")
     assert claims.noise_claims(str(tmp_path / "none"), set())[0].verdict.startswith(
         "not measured: multimodal_bidal missing")
     per_kappa = tmp_path / "per-kappa"  # one κ's runs alone (`noise_robustness --kappas`), the other κ not yet
@@ -227,11 +227,14 @@ def with_air(run_dir, air):
 
 def test_learning_speed_enters_the_verdict_with_auc_and_steps_intervals(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
-    *_, overall, lift, seeds = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
+    *_, overall, lift, seeds, reward = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
     assert overall.verdict == lift.verdict == seeds.verdict == "reproduced"
     # multimodal_bidal reaches 0.5 at epoch 5 (500 env steps per seed), the others at epoch 10 (1,000)
     assert "env steps to 0.5 -500 [-500, -500] over multimodal_baseline" in lift.ours
     assert "AUC +" in overall.ours and "env steps to 0.9 (share of the budget) -" in overall.ours
+    # the agent without the intrinsic reward is compared on its own row, never as the best other agent
+    assert claims.ABLATION not in overall.ours + lift.ours and f"vs {claims.ABLATION}" not in seeds.ours
+    assert reward.verdict == "reproduced" and f"over {claims.ABLATION}" in reward.ours
     # the same speed as the best other agent: the steps' intervals straddle 0, so the claim is not reproduced
     for task in protocol.TASKS:
         levels = [0.9 + 0.01 * (i - 2) for i in range(5)]
@@ -239,7 +242,7 @@ def test_learning_speed_enters_the_verdict_with_auc_and_steps_intervals(tmp_path
                  [[min(x, 0.05 * (e + 1)) for x in levels] for e in range(protocol.EPOCHS[task])], None, claims.OURS)
         for agent in set(AGENTS) - {claims.OURS}:
             shutil.copytree(tmp_path / task / agent, tmp_path / "slow" / task / agent)
-    *_, overall, _, _ = claims.learning_claims(claims.load_grid(str(tmp_path / "slow")), 10, set())
+    *_, overall, _, _, _ = claims.learning_claims(claims.load_grid(str(tmp_path / "slow")), 10, set())
     assert overall.verdict != "reproduced" and "env steps to 0.5 (share of the budget) +0.000 [0.000, 0.000]" \
         in overall.ours
 
@@ -248,7 +251,7 @@ def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
     # multimodal_bidal slides but never lifts: 0.97 overall, 0.1 on air goals
     with_air(str(tmp_path / "nicol_lift" / claims.OURS), [[0.1] * 5] * protocol.EPOCHS["nicol_lift"])
-    learn, *_, seeds = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
+    learn, *_, seeds, _ = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
     assert learn.verdict == "not reproduced" and "lowest: multimodal_bidal on nicol_lift 0.100" in learn.ours
     assert f"runs without that column ({', '.join(a for a in AGENTS if a != claims.OURS)})" in learn.rule
     assert f"{claims.OURS} 0/5 [" in seeds.ours and seeds.verdict == "not reproduced"  # 0/5 against 0/5: p = 1

@@ -1,6 +1,6 @@
 """The learning-curve grid (experiments/paper/curves.py) on hand-written run directories, without
 training (`no_nicol` and `write_fake_run` of conftest.py): the plan and its estimate, one budget per
-task, resuming, stale runs, refusals, the held-starts variant and the report."""
+task, seed blocks, resuming, stale runs, refusals, the plain lifting variant and the report."""
 
 import csv
 import json
@@ -41,12 +41,12 @@ def _arms(argv, out="out"):
 def test_the_grid_is_the_papers_tasks_and_agents():
     assert curves.TASKS == TASKS and set(TASKS) < set(envs_mjx.names())  # nicol_lift_reduced is not in it
     arms = _arms([])
-    assert [a.name for a in arms[:5]] == [f"planar_reach/{agent}" for agent in config_lib.AGENTS]
-    assert len(arms) == 20 and arms[-1].run_dir == os.path.join("out", "nicol_lift", "multimodal_bidal")
+    assert [a.name for a in arms[:6]] == [f"planar_reach/{agent}" for agent in config_lib.AGENTS]
+    assert len(arms) == 24 and arms[-1].run_dir == os.path.join("out", "nicol_lift", "multimodal_bidal_no_ri")
 
 
 @pytest.mark.parametrize("argv, expected", [
-    ([], {"planar_reach": 100, "ur5_reach": 150, "nicol_slide": 100, "nicol_lift": 100}),
+    ([], {"planar_reach": 100, "ur5_reach": 150, "nicol_slide": 30, "nicol_lift": 25}),
     (["--epochs", "7"], dict.fromkeys(TASKS, 7)),
 ])
 def test_every_agent_of_a_task_gets_the_same_epochs(argv, expected):
@@ -65,26 +65,26 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
     assert not out.exists() and no_nicol == []
     lines = printed.splitlines()
     assert (
-        lines[0] == "plan: 20 runs" and len([line for line in lines if line.endswith(" s") and "[new]" in line]) == 20
+        lines[0] == "plan: 24 runs" and len([line for line in lines if line.endswith(" s") and "[new]" in line]) == 24
     )
     for task in TASKS:
         for agent in config_lib.AGENTS:
             assert (
-                f"{task} {agent}, {10 if task == 'nicol_lift' else 5} seed(s), exploration starts 0; " in printed
+                f"{task} {agent}, 5 seed(s), exploration starts {0.5 if task == 'nicol_lift' else 0:g}; " in printed
                 and f"{out}/{task}/{agent} [new]" in printed
             )
     assert (
-        f"nicol_lift visual_bidal, 10 seed(s), exploration starts 0; 100 epochs × 204,800 = 20,480,000 env steps "
-        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 3,617 s"  # 81.2 s + 100 × 17.68 s × 10 / 5
+        f"nicol_lift visual_bidal, 5 seed(s), exploration starts 0.5; 25 epochs × 204,800 = 5,120,000 env steps "
+        f"per seed in {out}/nicol_lift/visual_bidal [new]; estimated 523 s"  # 81.2 s + 25 × 17.68 s
     ) in lines
     assert (
         f"ur5_reach proprio_baseline, 5 seed(s), exploration starts 0; 150 epochs × 8,000 = 1,200,000 env steps per "
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 118 s"  # 29.5 s + 150 × 0.59 s
     ) in lines
-    # the reaching tasks (1 + 4 agents), then (proprio, 2 baselines and 2 BidAL agents) on nicol_slide and, at
-    # 10 seeds, nicol_lift: (100 + 4 × 167.5) + (118 + 4 × 221.6) + (360.4 + 2 × 547.4 + 2 × 681.6)
-    # + (979.6 + 2 × 2,793.6 + 2 × 3,617.2)
-    assert "estimated time: 18,394 s (5.1 h) on one GPU running the runs one after another" in printed
+    # the reaching tasks (1 + 5 image agents), then (proprio, 2 baselines and 3 BidAL agents) on nicol_slide and
+    # nicol_lift: (100 + 5 × 167.5) + (118 + 5 × 221.6) + (212.7 + 2 × 214.9 + 3 × 264.4)
+    # + (158.9 + 2 × 508.1 + 3 × 523.2)
+    assert "estimated time: 6,344 s (1.8 h) on one GPU running the runs one after another" in printed
     assert lines[-1] == "dry run: nothing trained or written"
 
 
@@ -105,7 +105,7 @@ def test_the_estimates_are_the_measured_epochs_in_results(task):
 
 def test_each_agent_takes_its_kinds_estimate():
     assert [grid.kind("nicol_lift", agent) for agent in config_lib.AGENTS] == [
-        "proprio", "image_baseline", "image_baseline", "image", "image"]
+        "proprio", "image_baseline", "image_baseline", "image", "image", "image"]
     assert {grid.kind("planar_reach", agent) for agent in config_lib.AGENTS if agent != "proprio_baseline"} == {"image"}
 
 
@@ -194,7 +194,8 @@ def test_training_compiles_into_the_runs_persistent_cache(tmp_path, monkeypatch,
         (
             ["--agents", "proprio_baseline,bidal"],
             "error: --agents proprio_baseline,bidal: unknown agent 'bidal'; allowed: "
-            "proprio_baseline, visual_baseline, multimodal_baseline, visual_bidal, multimodal_bidal",
+            "proprio_baseline, visual_baseline, multimodal_baseline, visual_bidal, multimodal_bidal, "
+            "multimodal_bidal_no_ri",
         ),
         # the pass-through options are experiments/paper/grid.py's (tested in full with transfer_learning)
         (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
@@ -208,19 +209,62 @@ def test_bad_options_are_refused_before_anything_is_written(extra, expected, tmp
     assert no_nicol == [] and not out.exists()
 
 
-def test_held_starts_changes_only_nicol_lift_and_writes_elsewhere(tmp_path, monkeypatch, no_nicol, capsys):
-    plain, held = _arms([]), _arms(["--held-starts"])
-    for a, b in zip(plain, held):
-        changed = {k for k in a.given.keys() | b.given.keys() if a.given.get(k) != b.given.get(k)}
-        assert changed == ({"exploration_starts"} if a.given["env"] == "nicol_lift" else set()), a.name
-        assert b.given.get("exploration_starts", 0.5) == 0.5
+def test_lifting_starts_held_by_default_and_the_plain_variant_writes_elsewhere(tmp_path, monkeypatch, no_nicol,
+                                                                               capsys):
+    held, plain = _arms([]), _arms(["--exploration-starts", "0"])
+    for a, b in zip(held, plain):
+        assert a.config.train.exploration_starts == (0.5 if a.given["env"] == "nicol_lift" else 0.0), a.name
+        assert b.config.train.exploration_starts == 0.0
     monkeypatch.chdir(tmp_path)
-    assert curves.main(["--held-starts", "--dry-run"]) == 0
+    assert curves.main(["--exploration-starts", "0", "--dry-run"]) == 0
     printed = capsys.readouterr().out
-    assert "nicol_lift multimodal_bidal, 10 seed(s), exploration starts 0.5; " in printed
-    assert "nicol_slide multimodal_bidal, 5 seed(s), exploration starts 0; " in printed
-    assert "results/curves-held/nicol_lift/multimodal_bidal [new]" in printed and "results/curves/" not in printed
+    assert "nicol_lift multimodal_bidal, 5 seed(s), exploration starts 0; " in printed
+    assert "results/curves-plain/nicol_lift/multimodal_bidal [new]" in printed and "results/curves/" not in printed
+    assert curves.main(["--tasks", "nicol_lift", "--dry-run"]) == 0
+    assert "nicol_lift multimodal_bidal, 5 seed(s), exploration starts 0.5; " in capsys.readouterr().out
     assert not (tmp_path / "results").exists()
+
+
+def test_a_cell_longer_than_a_block_is_split_into_blocks_of_its_seeds():
+    """A cell is one run where its estimate fits `BLOCK_SECONDS`, else blocks of as even seeds as can be, each a run
+    of its own first seed in its own folder, each estimated within the limit."""
+    def visual_bidal(argv):
+        return next(a for a in _arms(argv) if a.name == "nicol_lift/visual_bidal")
+
+    fits = visual_bidal([])
+    assert grid.blocks(fits) == [fits]
+    cell = visual_bidal(["--seeds", "10", "--epochs", "100", "--seed", "7"])
+    blocks = grid.blocks(cell)
+    assert [b.given["seeds"] for b in blocks] == [3, 3, 2, 2]
+    assert [b.given["seed"] for b in blocks] == [7, 10, 13, 15]
+    assert [b.run_dir for b in blocks] == [os.path.join(cell.run_dir, f"seeds-{a}-{z}")
+                                           for a, z in ((0, 2), (3, 5), (6, 7), (8, 9))]
+    assert [b.name for b in blocks][0] == "nicol_lift/visual_bidal/seeds-0-2"
+    new = grid.Status("new", None, None)
+    assert grid.estimate(cell, new) > grid.BLOCK_SECONDS
+    assert all(grid.estimate(b, new) <= grid.BLOCK_SECONDS for b in blocks)
+
+
+def test_merging_two_seed_blocks_gives_the_table_of_one_run_of_all_the_seeds(tmp_path, no_nicol, fake_run, capsys):
+    """A cell stored as two blocks of seeds (their metrics and configs alone) reads, plots and tabulates as one run
+    of all its seeds; only its time is the blocks' sum."""
+    rows = [(0.1, 0.3, 0.0, 1.0), (0.5, 0.7, 0.2, 1.0), (0.7, 0.9, 0.4, 1.0)]
+    argv = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "4", "--epochs", "3",
+            "--last-n", "2", "--report"]
+    one, two = tmp_path / "one", tmp_path / "two"
+    fake_run(str(one / "planar_reach" / "proprio_baseline"), "planar_reach", rows, None, agent="proprio_baseline",
+             given={"seed": 0}, compile_seconds=5.0)
+    for first, last in ((0, 1), (2, 3)):
+        fake_run(str(two / "planar_reach" / "proprio_baseline" / f"seeds-{first}-{last}"), "planar_reach",
+                 [r[first:last + 1] for r in rows], None, agent="proprio_baseline", given={"seed": first},
+                 compile_seconds=5.0)
+    assert curves.main([*argv, "--out", str(one)]) == 0 and curves.main([*argv, "--out", str(two)]) == 0
+    assert (one / "curves.csv").read_text() == (two / "curves.csv").read_text()
+    tables = [(out / "table.md").read_text().replace(str(out), "OUT") for out in (one, two)]
+    # each block's 30 s + 5 s of compile, summed
+    assert tables[0].replace("35 s (0.6 min)", "70 s (1.2 min)").replace("35 s", "70 s") == tables[1]
+    assert "| proprio_baseline | 0.675 ± 0.259, 70 s |" in tables[1] and "†" not in tables[1]
+    assert "No run is missing or unfinished." in tables[1]
 
 
 REPORT = [
@@ -320,7 +364,7 @@ def test_a_run_of_an_older_nicol_preset_is_stale(tmp_path, fake_run):
     arm = next(a for a in _arms(["--seeds", "2"], str(tmp_path)) if a.name == "nicol_slide/proprio_baseline")
     old = {"epochs": 100, "num_envs": 512, "cycles_per_epoch": 5, "updates_per_cycle": 80, "buffer_episodes": 16384}
     fake_run(arm.run_dir, "nicol_slide", DONE, None, agent="proprio_baseline", given=old)
-    assert grid.stale(arm, TODAY) == ("config differs: num_envs 512 → 2560, cycles_per_epoch 5 → 1, "
+    assert grid.stale(arm, TODAY) == ("config differs: epochs 100 → 30, num_envs 512 → 2560, cycles_per_epoch 5 → 1, "
                                       "updates_per_cycle 80 → 1600, buffer_episodes 16384 → 15360")
 
 

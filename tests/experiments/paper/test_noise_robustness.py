@@ -24,8 +24,8 @@ def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, c
     assert noise.main([*TINY, "--out", out]) == 0
     text = open(os.path.join(out, "table.md")).read()
     assert "proprio_baseline (ours)" in text and "0.882 ± 0.0191" in text  # the paper's 5 % figure beside ours
-    # a window longer than the run uses what there is, and says so; 2 epochs of planar_reach's preset 40: short
-    assert text.count("(last 2 of 2 epochs; short run: 2 of 40 epochs)") == 3
+    # a window longer than the run uses what there is, and says so; 2 epochs of the noise budget 45: short
+    assert text.count("(last 2 of 2 epochs; short run: 2 of 45 epochs)") == 3
     assert "Steadiness: each run's std" in text
     regenerate = f"Regenerate from the run folders: `python -m experiments.paper.noise_robustness --report --out {out}`"
     assert regenerate in text
@@ -90,7 +90,7 @@ def test_one_kappa_alone_is_its_own_program_and_folder_and_joins_the_table(tmp_p
     rows = {}  # the first table's rows (the steadiness table below repeats the κ column)
     for line in open(os.path.join(out, "table.md")):
         rows.setdefault(line.split(" | ")[0], line)
-    assert rows["| 10%"].count("(last 2 of 2 epochs; short run: 2 of 40 epochs)") == 1
+    assert rows["| 10%"].count("(last 2 of 2 epochs; short run: 2 of 45 epochs)") == 1
     assert rows["| 5%"].startswith("| 5% | 5 | — ")  # the other κ are not trained
 
 
@@ -129,7 +129,7 @@ def test_a_run_whose_metrics_lost_rows_is_short_by_the_epoch_it_reached_and_name
     lines = open(path).read().splitlines(keepends=True)
     open(path, "w").writelines([lines[0], *lines[3:]])  # the rows of epochs 1 and 2 lost, 3 and 4 kept
     text = noise.write_report(out)
-    assert "(last 2 of 2 epochs; 2 epochs without a row; short run: 4 of 40 epochs)" in text
+    assert "(last 2 of 2 epochs; 2 epochs without a row; short run: 4 of 45 epochs)" in text
     assert "Epochs without a row in metrics.csv: proprio_baseline-kappa10 (1-2); the final success averages the " \
            "last rows there are.\n" in text
 

@@ -43,8 +43,8 @@ def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_n
         "source: nicol_slide multimodal_bidal, 2 seed(s), exploration starts 0; 2 epochs × 128,000 = 256,000" in printed
     )
     assert (
-        f"transfer: nicol_lift_reduced multimodal_bidal, 2 seed(s), exploration starts 0, parameters from {out}/source"
-        in printed
+        "transfer: nicol_lift_reduced multimodal_bidal, 2 seed(s), exploration starts 0.5, "
+        f"parameters from {out}/source" in printed
     )
     assert "3 epochs × 204,800 = 614,400 env steps per seed" in printed and "[done]" in printed
     table = (out / "table.md").read_text()
@@ -168,34 +168,34 @@ def test_the_transfer_arm_refuses_to_start_from_an_unfinished_source(source_rows
     ]
 
 
-def test_arms_share_seeds_and_settings_and_held_starts_is_a_labelled_variant():
-    args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--held-starts", "--num-envs", "64"])
+def test_arms_share_seeds_and_settings_and_start_held_unless_the_plain_variant():
+    args, rest = experiment.build_parser().parse_known_args(["--seeds", "5", "--num-envs", "64"])
     arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
     assert [a.name for a in arms] == ["source", "transfer", "scratch"]
     source, moved, scratch = (a.given for a in arms)
-    assert (source["env"], source["epochs"], source["num_envs"]) == ("nicol_slide", 100, 64)
+    assert (source["env"], source["epochs"], source["num_envs"]) == ("nicol_slide", 30, 64)
     assert "exploration_starts" not in source  # nicol_slide has no held start
     assert {k: v for k, v in moved.items() if k not in ("init_from", "init_parts", "init_normaliser", "run_dir")} == {
         k: v for k, v in scratch.items() if k != "run_dir"
     }
-    assert (scratch["exploration_starts"], scratch["seeds"], moved["init_from"]) == (0.5, 5, "out/source")
+    assert (scratch["seeds"], moved["init_from"]) == (5, "out/source")
+    # both arms train under the lifting preset's held starts, evaluated from reset
+    assert [a.config.train.exploration_starts for a in arms] == [0.0, 0.5, 0.5]
     assert moved["init_normaliser"] == "fresh"  # the target task's statistics, unless --init-normaliser inherit
     args, _ = experiment.build_parser().parse_known_args(["--init-normaliser", "inherit"])
     assert experiment.make_arms(args, {}, "out")[1].given["init_normaliser"] == "inherit"
     args, rest = experiment.build_parser().parse_known_args(["--source", "runs/slide", "--source-checkpoint", "best"])
     arms = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
     assert [a.name for a in arms] == ["transfer", "scratch"] and arms[0].given["init_from"] == "runs/slide:best"
-    assert arms[1].given["exploration_starts"] == 0.0
+    args, rest = experiment.build_parser().parse_known_args(["--exploration-starts", "0"])
+    plain = experiment.make_arms(args, grid.pass_through(rest, experiment.PROG), "out")
+    assert [a.config.train.exploration_starts for a in plain] == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.parametrize(
     "extra, expected",
     [
         (["--env", "ur5_reach"], "error: --env: not passed through to the runs (the experiment sets it)"),
-        (
-            ["--exploration-starts", "0.5"],
-            "error: --exploration-starts: not passed through to the runs (use --held-starts)",
-        ),
         (["--num-envs", "0"], "error: --num-envs 0: must be a positive integer"),
         (
             ["--arms", "source,lift"],
