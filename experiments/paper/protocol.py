@@ -36,8 +36,8 @@ TASKS = tuple(EPOCHS)
 # seeds per cell of the grid (a task and an agent), trained in blocks that each finish in `BLOCK_SECONDS`
 # (`grid.blocks`)
 DEFAULT_SEEDS = 5
-# a block of a cell's seeds is one run estimated to end within this, compilation included, on one GPU: machines
-# lent for half an hour, cluster jobs with wall-time limits and preemptible GPUs lose at most one block
+# a block of a cell's seeds is one run estimated to end within this, compilation included, on one GPU: GPUs
+# held for half an hour, cluster jobs with wall-time limits and preemptible machines lose at most one block
 BLOCK_SECONDS = 1200.0
 
 LIFTS = 0.5  # a seed lifts when its success over air goals over the last epochs is at least this

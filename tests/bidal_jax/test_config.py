@@ -17,7 +17,7 @@ def test_every_config_field_has_its_help_and_rule():
 
 def test_the_config_value_round_trips_through_its_json_form_and_fills_newer_fields():
     config = resolve({"env": "nicol_slide", "agent": "visual_bidal", "num_envs": 8})
-    assert config.train.num_envs == 8 and config.run.epochs == 100 and config.agent.uses_image
+    assert config.train.num_envs == 8 and config.run.epochs == 30 and config.agent.uses_image
     assert Config.from_dict(config.to_dict(), "test") == config
     old = config.to_dict()
     del old["train"]["grad_clip"]  # a config.json written before the field existed
