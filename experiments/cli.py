@@ -8,9 +8,10 @@
 - `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
   its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run file that is
   damaged, unreadable or of the wrong type, an output folder that is missing, a run directory in
-  use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed: no space, quota,
-  read-only file system, I/O error, permission denied); 130 and 143 stopped by SIGINT and SIGTERM
-  (a checkpoint was saved).
+  use, a state or epoch program larger than the device's memory); 3 diverged; 4 the disk (no room
+  for a checkpoint, or a write failed: no space, quota, read-only file system, I/O error, permission
+  denied); 6 the device ran out of memory all the same while the program compiled or trained (the
+  last good checkpoint is kept); 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
 - `command(main)`: how every command's `__main__` runs its `main`: Ctrl-C where no run's stop
   handler is installed (while the env is built, a program compiles, episodes are evaluated)
   ends it with one line and exit 130, without a traceback.
@@ -31,14 +32,17 @@ from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunCon
 from bidal_jax.run import loop, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
+from bidal_jax.run.memory import OutOfMemory
 from bidal_jax.run.rundir import DiskError
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_DISK = 4
-# what ends a command that trains: bad input, a diverged run, the disk, a stop signal
-FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, Interrupted)
-EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK))  # anything else: EXIT_BAD_INPUT
+EXIT_MEMORY = 6  # (5: a grid's cell lost, `experiments.cluster.EXIT_LOST`)
+# what ends a command that trains: bad input, a diverged run, the disk, the device's memory, a stop signal
+FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, OutOfMemory, Interrupted)
+# anything else: EXIT_BAD_INPUT
+EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK), (OutOfMemory, EXIT_MEMORY))
 CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
 
 

@@ -28,6 +28,7 @@ from typing import Any, Callable
 import jax
 
 from bidal_jax.config import Config
+from bidal_jax.run import memory
 from bidal_jax.run.runfiles import write_atomic
 
 PACKAGES = ("bidal_jax", "envs_mjx")  # the packages the program is traced from, and the models (envs_mjx.assets)
@@ -98,9 +99,11 @@ def _save(path: str, program: Any, log: Callable[[str], None]) -> None:
         log(f"the traced program was not saved ({err.strerror or err}); a later run traces it again")
 
 
-def compile_epoch(epoch: Callable, state: Any, path: str, log: Callable[[str], None]) -> tuple[Callable, bool]:
-    """(the compiled `epoch` as `epoch(state) -> (state, metrics)`, whether it was loaded from `path`): the
-    program saved at `path`, else `epoch` traced with `jax.export` and saved there. Its input state is donated,
+def compile_epoch(epoch: Callable, state: Any, path: str,
+                  log: Callable[[str], None]) -> tuple[Callable, bool, Any]:
+    """(the compiled `epoch` as `epoch(state) -> (state, metrics)`, whether it was loaded from `path`, the compiled
+    program's `memory_analysis()`): the program saved at `path`, else `epoch` traced with `jax.export` and saved
+    there. Its input state is donated,
     as `epoch`'s (`devices.make_seeded`). Raises what `jax.export` raises for a program it cannot export."""
     leaves, treedef = jax.tree.flatten(state)
     avals = [(tuple(x.shape), x.dtype) for x in leaves]
@@ -124,4 +127,4 @@ def compile_epoch(epoch: Callable, state: Any, path: str, log: Callable[[str], N
         new, metrics = compiled(*jax.tree.leaves(state))
         return jax.tree.unflatten(treedef, new), metrics
 
-    return run, loaded
+    return run, loaded, memory.analysis(compiled)
