@@ -29,7 +29,7 @@ from typing import Any, Callable, Sequence
 
 import envs_mjx
 from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunConfig, fields_help, option
-from bidal_jax.run import loop, preflight, transfer
+from bidal_jax.run import cachefolder, loop, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
 from bidal_jax.run.memory import OutOfMemory
@@ -132,10 +132,10 @@ def start_run(
     `overwrite`), then train it: (its config, its last metrics row). `env` defaults to one made for
     the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for;
     `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
-    (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile, with one
-    source location per operation (`loop.short_source_locations`).
-    Raises what `FAILURES` names."""
-    loop.enable_compilation_cache()  # before anything compiles: JAX reads the setting at its first compile
+    (`cachefolder.enable`; a folder that cannot be written is one warning line, and the run goes on without it),
+    so that a resumed or repeated run of a config skips XLA's compile, with one source location per operation
+    (`loop.short_source_locations`). Raises what `FAILURES` names."""
+    cachefolder.enable()  # before anything compiles: JAX reads the setting at its first compile
     loop.short_source_locations()  # before anything is lowered
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
                            overwrite=overwrite, fresh_buffer=fresh_buffer, env=env) as prepared:

@@ -194,11 +194,11 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
     compiled = None
     if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1 \
             and env.backend == "jax":  # jax.export refuses MuJoCo Warp's custom calls
-        path = os.path.join(where, f"epoch-{exported.program_key(config, env.physics_id, programs.devices)}.jax")
+        key = exported.program_key(config, env.physics_id, programs.devices)
         try:
-            compiled, loaded, stats = exported.compile_epoch(programs.epoch, state, path, log)
+            compiled, loaded, stats = exported.compile_epoch(programs.epoch, state, where, key, log)
             if loaded:
-                log(f"the traced epoch program loaded from {path}")
+                log(f"the traced epoch program loaded from {exported.path_of(where, key)}")
         except Exception as err:  # a program jax.export refuses: traced as before
             if memory.exhausted(err):
                 raise
@@ -372,20 +372,6 @@ def _train(
             log.close()
             mngr.close()
     return row
-
-
-def enable_compilation_cache() -> None:
-    """JAX's persistent compilation cache, so that a second run of a config skips compiling: in
-    `$BIDAL_JAX_CACHE`, else in JAX's own `$JAX_COMPILATION_CACHE_DIR`, else in ~/.cache/bidal_jax/xla.
-    JAX fixes the folder at the process's first compile, so call this before anything compiles.
-
-    Every program is kept, however fast it compiled: besides the run's programs, building the env (the camera's
-    static image, MJX's data) and the seeds' keys run some sixty operations one by one, each its own small
-    compile, together about 1.5 s of every start on a 2-core CPU; read back, they take a fraction of that."""
-    cache = (os.environ.get("BIDAL_JAX_CACHE") or os.environ.get("JAX_COMPILATION_CACHE_DIR")
-             or os.path.join(os.path.expanduser("~"), ".cache", "bidal_jax", "xla"))
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 def short_source_locations() -> None:
