@@ -6,12 +6,14 @@
   and the programs built once, the run directory locked and, when asked, emptied), restore
   another run's parameters when `init_from` asks, train.
 - `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
-  its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run file that is
-  damaged, unreadable or of the wrong type, an output folder that is missing, a run directory in
-  use, a state or epoch program larger than the device's memory); 3 diverged; 4 the disk (no room
-  for a checkpoint, or a write failed: no space, quota, read-only file system, I/O error, permission
-  denied); 6 the device ran out of memory all the same while the program compiled or trained (the
-  last good checkpoint is kept); 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+  its one line on stderr (`failure`: the two without printing, as a grid's cell reports them): 2 bad
+  input (an option, config, checkpoint or file, a run file that is damaged, unreadable or of the
+  wrong type, an output folder that is missing, a run directory in use, a state or epoch program
+  larger than the device's memory); 3 diverged; 4 the disk (no room for a checkpoint, or a write
+  failed: no space, quota, read-only file system, I/O error, permission denied); 6 the device ran out
+  of memory all the same while the program compiled or trained (the last good checkpoint is kept);
+  130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved). 5 is a grid's (a cell whose
+  worker died more often than its retries allow: `experiments.cluster`).
 - `command(main)`: how every command's `__main__` runs its `main`: Ctrl-C where no run's stop
   handler is installed (while the env is built, a program compiles, episodes are evaluated)
   ends it with one line and exit 130, without a traceback.
@@ -46,15 +48,20 @@ EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK), (OutOfMemory, E
 CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
 
 
-def exit_code(err: Exception, resume_hint: str = "run the same command again to continue") -> int:
-    """Print the one line of an error that ends a command and return its exit code: a stop signal's
-    (its checkpoint saved; `resume_hint` says how to continue, "{run_dir}" standing for the run's
-    directory), else that of `EXIT_CODES`, or 2 (bad input)."""
+def failure(err: Exception, resume_hint: str = "run the same command again to continue") -> tuple[int, str]:
+    """(exit code, one line) of an error that ends a command: a stop signal's (its checkpoint saved;
+    `resume_hint` says how to continue, "{run_dir}" standing for the run's directory), else "error: ..." and the
+    code of `EXIT_CODES`, or 2 (bad input)."""
     if isinstance(err, Interrupted):
-        print(f"{err}; {resume_hint.format(run_dir=err.run_dir)}", file=sys.stderr)
-        return err.exit_code
-    print(f"error: {err}", file=sys.stderr)
-    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT)
+        return err.exit_code, f"{err}; {resume_hint.format(run_dir=err.run_dir)}"
+    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT), f"error: {err}"
+
+
+def exit_code(err: Exception, resume_hint: str = "run the same command again to continue") -> int:
+    """Print the one line of an error that ends a command on stderr and return its exit code (`failure`)."""
+    code, line = failure(err, resume_hint)
+    print(line, file=sys.stderr)
+    return code
 
 
 def command(main: Callable[[], int]) -> int:

@@ -252,7 +252,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.dry_run:
                 print(grid.DRY_RUN)
                 return 0
-            code = grid.train_arms(arms, envs, args)
+            code = grid.train_arms(arms, envs, args, out)
         variant = f", {HELD_TASK} with held starts" if args.held_starts else ""
         title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
         if multihost.is_main():  # one process writes the results
