@@ -8,8 +8,9 @@ run by the caller beforehand is used as it is.
 
 - A local Ray (`start_ray`) listens on the loopback interface alone (Ray binds its servers to 127.0.0.1 where it
   takes the node's address to be loopback, as it does on macOS and Windows: `LOCAL_RAY`), with Ray's token
-  authentication on where the installed Ray has it; a `--ray-address` that nothing answers is refused in one line
-  (`check_reachable`) rather than retried by Ray for minutes. Cells that ask for GPUs (or CPUs) no node of the
+  authentication on where the installed Ray has it; a `--ray-address` that nothing answers, or that a Ray driver
+  cannot join, is refused in one line within 30 s (`check_reachable`, `check_joinable`) rather than retried by Ray
+  for minutes. Cells that ask for GPUs (or CPUs) no node of the
   cluster has, which Ray would keep waiting for, are refused in one line (`check_fits`).
 - One grid at a time per `--out`: the grid locks it (`holding`, a lock file there) while its cells train; a second
   grid on it is refused (exit 2) before Ray starts.
@@ -47,6 +48,7 @@ import dataclasses
 import logging
 import os
 import socket
+import subprocess
 import sys
 import time
 import urllib.parse
@@ -66,7 +68,11 @@ MEMORY_PER_SHARE = 0.9
 # the folder holding the packages, which workers put first on their path (this checkout's code, not another)
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(experiments.__file__)))
 GRID_LOCK = ".grid.lock"  # the lock file of a grid's --out folder (`holding`)
-CONNECT_TIMEOUT = 10.0  # seconds a --ray-address has to answer before the grid is refused
+CONNECT_TIMEOUT = 5.0  # seconds a --ray-address has to accept a connection before the grid is refused
+JOIN_TIMEOUT = 20.0  # seconds a Ray driver has to join it (`check_joinable`): both together stay under 30 s
+# what `check_joinable` runs in a child process: join the cluster at argv[1] and leave it
+JOIN = ("import sys, ray; ray.init(address=sys.argv[1], include_dashboard=False, log_to_driver=False, "
+        "logging_level=40); ray.shutdown()")
 # the environment of a local Ray that a grid starts, unless already set: its servers on loopback alone (Ray takes
 # the node's address to be 127.0.0.1 where clusters are off, and then binds to it) and Ray's token authentication on
 LOCAL_RAY = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_AUTH_MODE": "token"}
@@ -240,6 +246,22 @@ def check_reachable(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
                           "there (`ray start --head`), or leave --ray-address out for a local Ray") from None
 
 
+def check_joinable(address: str, timeout: float = JOIN_TIMEOUT) -> None:
+    """ConfigError, one line, when a Ray driver cannot join the cluster at `address` within `timeout` seconds: tried
+    in a child process (killed at the timeout), since `ray.init` keeps retrying an address that answers but is no
+    Ray cluster's (or one it maps to another of this machine's addresses) for minutes, printing its warnings."""
+    try:
+        done = subprocess.run([sys.executable, "-c", JOIN, address], capture_output=True, text=True, timeout=timeout,
+                              env={**os.environ, "RAY_ADDRESS": ""})
+    except subprocess.TimeoutExpired:
+        raise ConfigError(f"--ray-address {address}: no Ray cluster let a driver join within {timeout:.0f} s; check "
+                          "that `ray start --head` runs there and prints this address (a cluster with token "
+                          "authentication needs RAY_AUTH_MODE=token here too)") from None
+    if done.returncode:
+        last = next((line.strip() for line in reversed(done.stderr.splitlines()) if line.strip()), "")
+        raise ConfigError(f"--ray-address {address}: Ray could not join the cluster ({last or done.returncode})")
+
+
 def import_ray(local: bool = False):
     """The `ray` module, imported with `LOCAL_RAY`'s settings where unset when it is to start a `local` Ray (Ray
     reads them as it is imported, and its processes inherit them); ConfigError when the extra is not installed."""
@@ -254,17 +276,19 @@ def import_ray(local: bool = False):
 
 
 def start_ray(ray, address: str | None) -> None:
-    """Join the Ray cluster at `address` (checked first: `check_reachable`; 'auto': the one running on this machine),
-    or start a local one; ConfigError, one line, when Ray cannot."""
-    if address and address not in ("auto", "local"):
-        check_reachable(address)
+    """Join the Ray cluster at `address` (checked first, in 30 s at most: `check_reachable`, `check_joinable`; 'auto':
+    the one running on this machine), or start a local one; ConfigError, one line, when Ray cannot."""
+    if address and address != "local":
+        if address != "auto":
+            check_reachable(address)
+        check_joinable(address)
     try:
         with warnings.catch_warnings():  # JAX's about fork in a threaded process: Ray's processes fork and exec
             warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
             ray.init(address=address, include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING)
     except Exception as err:  # no cluster at 'auto', a cluster of another Ray version, a local Ray that fails
-        where = f"--ray-address {address}" if address else "--ray"
-        raise ConfigError(f"{where}: Ray did not start ({type(err).__name__}: {first_line(err)})") from None
+        what = f"--ray-address {address}: Ray could not join the cluster" if address else "--ray: Ray could not start"
+        raise ConfigError(f"{what} ({type(err).__name__}: {first_line(err)})") from None
 
 
 def check_fits(gpus: float, cpus: float, nodes: list[dict]) -> None:

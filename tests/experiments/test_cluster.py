@@ -380,7 +380,7 @@ def test_two_grids_on_one_out_are_refused(fake_ray, tmp_path, capsys):
 
 def test_an_address_nothing_answers_is_refused_in_one_line_within_30_s(fake_ray, monkeypatch, tmp_path):
     """Ray itself retries an address nothing answers for minutes; the grid refuses it at once, before `ray.init`
-    (which fails this test if called)."""
+    (which fails this test if called), and one that answers but lets no driver join within 20 s."""
     fake_ray(initialized=False)
     with socket.socket() as s:  # a port that nothing listens on
         s.bind(("127.0.0.1", 0))
@@ -396,10 +396,22 @@ def test_an_address_nothing_answers_is_refused_in_one_line_within_30_s(fake_ray,
         raise TimeoutError("timed out")
 
     monkeypatch.setattr(cluster.socket, "create_connection", silent)
-    with pytest.raises(ConfigError, match=r"nothing answers at 10\.1\.2\.3:6379 \(no answer within 10 s\)"):
+    with pytest.raises(ConfigError, match=r"nothing answers at 10\.1\.2\.3:6379 \(no answer within 5 s\)"):
         cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3"), lock)
     with pytest.raises(ConfigError, match=r"--ray-address head:port: not an address of a Ray cluster"):
         cluster.check_reachable("head:port")
+
+    def answers(address, timeout):  # a port that accepts, but is no Ray cluster's: a driver cannot join
+        return types.SimpleNamespace(close=lambda: None)
+
+    def hangs(command, timeout, **kwargs):
+        raise subprocess.TimeoutExpired(command, timeout)
+
+    monkeypatch.setattr(cluster.socket, "create_connection", answers)
+    monkeypatch.setattr(cluster.subprocess, "run", hangs)
+    with pytest.raises(ConfigError, match=r"^--ray-address 10\.1\.2\.3:8000: no Ray cluster let a driver join "
+                                          r"within 20 s; check that `ray start --head` runs there"):
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3:8000"), lock)
     assert cluster.address_of("ray://head") == ("head", 10001) and cluster.address_of("[::1]:6380") == ("::1", 6380)
 
 
