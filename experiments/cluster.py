@@ -67,7 +67,7 @@ EXIT_SIGINT = 130  # the driver stopped by Ctrl-C, as experiments.run's
 MEMORY_PER_SHARE = 0.9
 # the folder holding the packages, which workers put first on their path (this checkout's code, not another)
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(experiments.__file__)))
-GRID_LOCK = ".grid.lock"  # the lock file of a grid's --out folder (`holding`)
+GRID_LOCK = ".grid.lock"  # the lock file in a grid's --out folder (`holding`; a sweep's: beside its --out file)
 CONNECT_TIMEOUT = 5.0  # seconds a --ray-address has to accept a connection before the grid is refused
 JOIN_TIMEOUT = 20.0  # seconds a Ray driver has to join it (`check_joinable`): both together stay under 30 s
 # what `check_joinable` runs in a child process: join the cluster at argv[1] and leave it
@@ -251,8 +251,7 @@ def check_joinable(address: str, timeout: float = JOIN_TIMEOUT) -> None:
     in a child process (killed at the timeout), since `ray.init` keeps retrying an address that answers but is no
     Ray cluster's (or one it maps to another of this machine's addresses) for minutes, printing its warnings."""
     try:
-        done = subprocess.run([sys.executable, "-c", JOIN, address], capture_output=True, text=True, timeout=timeout,
-                              env={**os.environ, "RAY_ADDRESS": ""})
+        done = subprocess.run([sys.executable, "-c", JOIN, address], capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         raise ConfigError(f"--ray-address {address}: no Ray cluster let a driver join within {timeout:.0f} s; check "
                           "that `ray start --head` runs there and prints this address (a cluster with token "
@@ -312,19 +311,20 @@ def cell_gpus(asked: float | None, nodes: list[dict]) -> float:
 
 
 @contextlib.contextmanager
-def holding(lock: str) -> Iterator[None]:
-    """Hold the grid's lock file `lock` (in its --out folder: `GRID_LOCK`) for the block: ConfigError, one line, while
-    another grid holds it (or when it cannot be made)."""
+def holding(out: str, lock: str | None = None) -> Iterator[None]:
+    """Hold the grid's `--out` for the block through its lock file (`lock`, by default `GRID_LOCK` in the folder
+    `out`): ConfigError, one line, while another grid holds it (or when the file cannot be made)."""
+    lock = lock or os.path.join(out, GRID_LOCK)
+
     def in_use(holder: str) -> ConfigError:
-        return ConfigError(f"--out {os.path.dirname(lock) or '.'}: another grid trains into it ({holder}); wait "
-                           "until it ends or give another --out")
+        return ConfigError(f"--out {out}: another grid trains into it ({holder}); wait until it ends or give another "
+                           "--out")
 
     try:
         os.makedirs(os.path.dirname(lock) or ".", exist_ok=True)
         fd = rundir.lock_file(lock, in_use)
     except OSError as err:
-        raise ConfigError(f"--out {os.path.dirname(lock) or '.'}: cannot create the grid's lock file {lock} "
-                          f"({err.strerror or err})") from None
+        raise ConfigError(f"--out {out}: cannot create the grid's lock file {lock} ({err.strerror or err})") from None
     try:
         yield
     finally:
@@ -332,14 +332,14 @@ def holding(lock: str) -> Iterator[None]:
 
 
 def run_cells(cells: Sequence[Cell], work: Callable[[Any], tuple[int, str | None]], args: argparse.Namespace,
-              lock: str) -> int:
+              out: str, lock: str | None = None) -> int:
     """Train every cell as a Ray task (`run_cell`: `work(cell.payload)` in a worker, returning its exit code and
-    why it failed), holding the grid's `lock` (`holding`), printing a progress table every `args.progress_every`
-    seconds and a line as each cell ends; the grid's exit code (the module docstring). Starts a local Ray
-    (`start_ray`), or joins `args.ray_address`, unless Ray is running in this process already (then it is left
-    running). ConfigError, one line, for a grid refused before its cells start."""
+    why it failed), holding the grid's `out` (`holding`, through `lock`), printing a progress table every
+    `args.progress_every` seconds and a line as each cell ends; the grid's exit code (the module docstring). Starts
+    a local Ray (`start_ray`), or joins `args.ray_address`, unless Ray is running in this process already (then it
+    is left running). ConfigError, one line, for a grid refused before its cells start."""
     check_options(args)
-    with holding(lock):
+    with holding(out, lock):
         ray = import_ray(local=not args.ray_address)
         started = not ray.is_initialized()
         if started:

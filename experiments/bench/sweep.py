@@ -139,7 +139,7 @@ def train_on_ray(args, variants: list) -> int:
     cells = [cluster.Cell(f"{i}: {label}", args.epochs, (args, label, *parsed, path),
                           lambda path=path: rows_written(path)) for i, ((label, parsed), path) in
              enumerate(zip(variants, paths))]
-    code = cluster.run_cells(cells, train_part, args, f"{args.out}.{cluster.GRID_LOCK.lstrip('.')}")
+    code = cluster.run_cells(cells, train_part, args, args.out, lock=f"{args.out}{cluster.GRID_LOCK}")
     with open(args.out, "a") as sink:
         for path in paths:
             if os.path.exists(path):

@@ -372,7 +372,7 @@ def train_arms(arms: Sequence[Arm], envs: dict[str, Any], args: argparse.Namespa
         if cluster.wanted(args):
             cells = [cluster.Cell(arm.name, arm.epochs, (arm, args.fresh_buffer),
                                   functools.partial(cluster.epochs_done, arm.run_dir), arm.after) for arm in arms]
-            return cluster.run_cells(cells, train_cell, args, os.path.join(out, cluster.GRID_LOCK))
+            return cluster.run_cells(cells, train_cell, args, out)
         for arm in arms:
             train_arm(arm, envs[arm.name], args.quiet, args.fresh_buffer)
     except cli.FAILURES as err:

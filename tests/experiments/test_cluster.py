@@ -136,7 +136,7 @@ def test_a_killed_worker_resumes_its_cell_from_its_checkpoint_with_its_buffer(fi
     killer.start()
     cells = [cluster.Cell(resumed.name, EPOCHS, ((resumed, False), str(tmp_path)),
                           lambda: cluster.epochs_done(resumed.run_dir))]
-    code = cluster.run_cells(cells, train_paused_once, ray_args(retries=1), str(tmp_path / cluster.GRID_LOCK))
+    code = cluster.run_cells(cells, train_paused_once, ray_args(retries=1), str(tmp_path))
     killer.join()
     assert killed and code == 0
     assert (tmp_path / "attempts").read_text().split() == ["None", "1"]  # fresh, then from checkpoint 1
@@ -216,7 +216,7 @@ def test_ray_without_the_extra_is_refused(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails as where the cluster extra is not installed
     cells = [cluster.Cell("a", 1, None, lambda: 0)]
     with pytest.raises(ConfigError, match=r'--ray needs Ray: pip install -e "\.\[cluster\]"'):
-        cluster.run_cells(cells, lambda payload: (0, None), ray_args(), str(tmp_path / cluster.GRID_LOCK))
+        cluster.run_cells(cells, lambda payload: (0, None), ray_args(), str(tmp_path))
 
 
 # ----- the grid under faults, on a Ray of this process (`FakeRay`): failures, Ctrl-C, --out, addresses, GPUs -------
@@ -329,7 +329,7 @@ def test_a_cell_that_fails_on_every_try_is_reported_once_and_the_others_go_on(fa
     outcomes = {"a": (0, None), "b": WorkerDied, "c": (2, "error: --batch-size 0: must be a positive integer"),
                 "d": (0, None), "e": (0, None)}
     cells = [cell("a"), cell("b"), cell("c"), cell("d", after=["b"]), cell("e")]
-    code = cluster.run_cells(cells, work_of(outcomes, ran), ray_args(retries=2), str(tmp_path / cluster.GRID_LOCK))
+    code = cluster.run_cells(cells, work_of(outcomes, ran), ray_args(retries=2), str(tmp_path))
     out, err = capsys.readouterr()
     assert code == cluster.EXIT_LOST and ran == ["a", "b", "b", "b", "c", "e"]
     assert sorted(fake.attempts.values()) == [0, 1, 1, 1, 3]  # b: 3 tries; d: none
@@ -352,14 +352,14 @@ def test_ctrl_c_stops_the_cells_and_exits_130_with_one_line(fake_ray, tmp_path, 
     fake = fake_ray(interrupts=1)
     cells = [cell("a"), cell("b")]
     work = work_of({"a": (0, None), "b": (0, None)}, [])
-    assert cluster.run_cells(cells, work, ray_args(), str(tmp_path / cluster.GRID_LOCK)) == 130
+    assert cluster.run_cells(cells, work, ray_args(), str(tmp_path)) == 130
     err = capsys.readouterr().err.splitlines()
     assert [force for _, force in fake.cancelled] == [False, False] and fake.waits == [1, 2]
     assert err == ["SIGINT: stopping the cells, each after a checkpoint of its epoch in flight (Ctrl-C again stops "
                    "them at once)", "interrupted: the cells are stopped, each at its latest checkpoint; run the same "
                    "command again to resume them"]
     fake = fake_ray(interrupts=2)
-    assert cluster.run_cells(cells, work, ray_args(), str(tmp_path / cluster.GRID_LOCK)) == 130
+    assert cluster.run_cells(cells, work, ray_args(), str(tmp_path)) == 130
     assert [force for _, force in fake.cancelled] == [False, False, True, True]
     assert capsys.readouterr().err.splitlines()[-1].startswith("interrupted: ")
 
@@ -369,7 +369,7 @@ def test_two_grids_on_one_out_are_refused(fake_ray, tmp_path, capsys):
     Ray starts; once the first has ended, the folder is free."""
     fake = fake_ray(initialized=False)  # would fail the test if the refused grid started Ray
     out = tmp_path / "curves"
-    with cluster.holding(str(out / cluster.GRID_LOCK)):
+    with cluster.holding(str(out)):
         assert grid.train_arms([], {}, ray_args(), str(out)) == 2
     assert capsys.readouterr().err.splitlines() == [
         f"error: --out {out}: another grid trains into it (host {socket.gethostname()}, PID {os.getpid()}); wait "
@@ -385,11 +385,11 @@ def test_an_address_nothing_answers_is_refused_in_one_line_within_30_s(fake_ray,
     with socket.socket() as s:  # a port that nothing listens on
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    lock = str(tmp_path / cluster.GRID_LOCK)
+    out = str(tmp_path)
     began = time.time()
     with pytest.raises(ConfigError, match=rf"^--ray-address 127\.0\.0\.1:{port}: nothing answers at 127\.0\.0\.1:"
                                           rf"{port} \(Connection refused\); start the cluster there"):
-        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address=f"127.0.0.1:{port}"), lock)
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address=f"127.0.0.1:{port}"), out)
     assert time.time() - began < 30
 
     def silent(address, timeout):
@@ -397,7 +397,7 @@ def test_an_address_nothing_answers_is_refused_in_one_line_within_30_s(fake_ray,
 
     monkeypatch.setattr(cluster.socket, "create_connection", silent)
     with pytest.raises(ConfigError, match=r"nothing answers at 10\.1\.2\.3:6379 \(no answer within 5 s\)"):
-        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3"), lock)
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3"), out)
     with pytest.raises(ConfigError, match=r"--ray-address head:port: not an address of a Ray cluster"):
         cluster.check_reachable("head:port")
 
@@ -411,7 +411,7 @@ def test_an_address_nothing_answers_is_refused_in_one_line_within_30_s(fake_ray,
     monkeypatch.setattr(cluster.subprocess, "run", hangs)
     with pytest.raises(ConfigError, match=r"^--ray-address 10\.1\.2\.3:8000: no Ray cluster let a driver join "
                                           r"within 20 s; check that `ray start --head` runs there"):
-        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3:8000"), lock)
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3:8000"), out)
     assert cluster.address_of("ray://head") == ("head", 10001) and cluster.address_of("[::1]:6380") == ("::1", 6380)
 
 
@@ -421,7 +421,7 @@ def test_cells_take_a_gpu_where_the_cluster_has_gpus_else_train_on_cpus(fake_ray
                                                                         gpus):
     fake = fake_ray(nodes=[{"Alive": True, "Resources": resources}])
     args = ray_args(gpus_per_cell=asked)
-    assert cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), args, str(tmp_path / cluster.GRID_LOCK)) == 0
+    assert cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), args, str(tmp_path)) == 0
     assert fake.options["num_gpus"] == gpus
     assert f"Ray: each of 1 cell(s) takes {gpus:g} GPU(s) and 1 CPU(s)" in capsys.readouterr().out
 
@@ -437,7 +437,7 @@ def test_cells_asking_for_what_no_node_has_are_refused(fake_ray, tmp_path, gpus,
                                                                                                "GPU": 8.0}}])
     with pytest.raises(ConfigError, match=message):
         cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(gpus_per_cell=gpus, cpus_per_cell=cpus),
-                          str(tmp_path / cluster.GRID_LOCK))
+                          str(tmp_path))
 
 
 GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", "300", "--ray",
