@@ -7,11 +7,14 @@
   and the programs built once, the run directory locked and, when asked, emptied), restore
   another run's parameters when `init_from` asks, train.
 - `exit_code(err)`: the one mapping of an error that ends a command to its exit code, after
-  its one line on stderr: 2 bad input (an option, config, checkpoint or file, a run file that is
-  damaged, unreadable or of the wrong type, an output folder that is missing, a run directory in
-  use); 3 diverged; 4 the disk (no room for a checkpoint, or a write failed: no space, quota,
-  read-only file system, I/O error, permission denied); 130 and 143 stopped by SIGINT and SIGTERM
-  (a checkpoint was saved).
+  its one line on stderr (`failure`: the two without printing, as a grid's cell reports them): 2 bad
+  input (an option, config, checkpoint or file, a run file that is damaged, unreadable or of the
+  wrong type, an output folder that is missing, a run directory in use, a state or epoch program
+  larger than the device's memory); 3 diverged; 4 the disk (no room for a checkpoint, or a write
+  failed: no space, quota, read-only file system, I/O error, permission denied); 6 the device ran out
+  of memory all the same while the program compiled or trained (the last good checkpoint is kept);
+  130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved). 5 is a grid's (a cell whose
+  worker died more often than its retries allow: `experiments.cluster`).
 - `command(main)`: how every command's `__main__` runs its `main`: Ctrl-C where no run's stop
   handler is installed (while the env is built, a program compiles, episodes are evaluated)
   ends it with one line and exit 130, without a traceback.
@@ -40,29 +43,37 @@ from bidal_jax.config import (
     option,
     resolve,
 )
-from bidal_jax.run import loop, preflight, transfer
+from bidal_jax.run import cachefolder, loop, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
+from bidal_jax.run.memory import OutOfMemory
 from bidal_jax.run.rundir import DiskError
 
 EXIT_BAD_INPUT = 2
 EXIT_DIVERGED = 3
 EXIT_DISK = 4
-# what ends a command that trains: bad input, a diverged run, the disk, a stop signal
-FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, Interrupted)
-EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK))  # anything else: EXIT_BAD_INPUT
+EXIT_MEMORY = 6  # (5: a grid's cell lost, `experiments.cluster.EXIT_LOST`)
+# what ends a command that trains: bad input, a diverged run, the disk, the device's memory, a stop signal
+FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, OutOfMemory, Interrupted)
+# anything else: EXIT_BAD_INPUT
+EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK), (OutOfMemory, EXIT_MEMORY))
 CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
 
 
-def exit_code(err: Exception, resume_hint: str = "run the same command again to continue") -> int:
-    """Print the one line of an error that ends a command and return its exit code: a stop signal's
-    (its checkpoint saved; `resume_hint` says how to continue, "{run_dir}" standing for the run's
-    directory), else that of `EXIT_CODES`, or 2 (bad input)."""
+def failure(err: Exception, resume_hint: str = "run the same command again to continue") -> tuple[int, str]:
+    """(exit code, one line) of an error that ends a command: a stop signal's (its checkpoint saved;
+    `resume_hint` says how to continue, "{run_dir}" standing for the run's directory), else "error: ..." and the
+    code of `EXIT_CODES`, or 2 (bad input)."""
     if isinstance(err, Interrupted):
-        print(f"{err}; {resume_hint.format(run_dir=err.run_dir)}", file=sys.stderr)
-        return err.exit_code
-    print(f"error: {err}", file=sys.stderr)
-    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT)
+        return err.exit_code, f"{err}; {resume_hint.format(run_dir=err.run_dir)}"
+    return next((code for kind, code in EXIT_CODES if isinstance(err, kind)), EXIT_BAD_INPUT), f"error: {err}"
+
+
+def exit_code(err: Exception, resume_hint: str = "run the same command again to continue") -> int:
+    """Print the one line of an error that ends a command on stderr and return its exit code (`failure`)."""
+    code, line = failure(err, resume_hint)
+    print(line, file=sys.stderr)
+    return code
 
 
 def command(main: Callable[[], int]) -> int:
@@ -174,10 +185,10 @@ def start_run(
     `overwrite`), then train it: (its config, its last metrics row). `env` defaults to one made for
     the run's agent; `initialize` (see `loop.build`) to the transfer that `init_from` asks for;
     `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
-    (`loop.enable_compilation_cache`), so that a resumed or repeated run of a config skips XLA's compile, with one
-    source location per operation (`loop.short_source_locations`).
-    Raises what `FAILURES` names."""
-    loop.enable_compilation_cache()  # before anything compiles: JAX reads the setting at its first compile
+    (`cachefolder.enable`; a folder that cannot be written is one warning line, and the run goes on without it),
+    so that a resumed or repeated run of a config skips XLA's compile, with one source location per operation
+    (`loop.short_source_locations`). Raises what `FAILURES` names."""
+    cachefolder.enable()  # before anything compiles: JAX reads the setting at its first compile
     loop.short_source_locations()  # before anything is lowered
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
                            overwrite=overwrite, fresh_buffer=fresh_buffer, env=env) as prepared:

@@ -1,14 +1,28 @@
 """Cells of a grid scheduled through Ray (`--ray`): the paper's experiments and `experiments.bench.sweep`.
 
 A cell is one unit of a grid (a paper experiment's run, a sweep's variant) that a Ray task trains on its share of
-a machine: `--gpus-per-cell` GPUs (1 by default; a fraction, e.g. 0.5, lets cells small enough share one GPU) and
-`--cpus-per-cell` CPUs. Ray starts a local instance on this machine unless `--ray-address` names a running cluster
-(`ray start --head` prints its address); `ray.init` run by the caller beforehand is used as it is.
+a machine: `--gpus-per-cell` GPUs (by default 1 where the Ray cluster has GPUs, else 0: the cells train on CPUs; a
+fraction, e.g. 0.5, lets cells small enough share one GPU) and `--cpus-per-cell` CPUs. Ray starts a local instance
+on this machine unless `--ray-address` names a running cluster (`ray start --head` prints its address); `ray.init`
+run by the caller beforehand is used as it is.
 
+- A local Ray (`start_ray`) listens on the loopback interface alone (Ray binds its servers to 127.0.0.1 where it
+  takes the node's address to be loopback, as it does on macOS and Windows: `LOCAL_RAY`), with Ray's token
+  authentication on where the installed Ray has it; a `--ray-address` that nothing answers, or that a Ray driver
+  cannot join, is refused in one line within 30 s (`check_reachable`, `check_joinable`) rather than retried by Ray
+  for minutes. Cells that ask for GPUs (or CPUs) no node of the
+  cluster has, which Ray would keep waiting for, are refused in one line (`check_fits`).
+- One grid at a time per `--out`: the grid locks it (`holding`, a lock file there) while its cells train; a second
+  grid on it is refused (exit 2) before Ray starts.
 - Results: a cell writes where the experiment's `--out` says, as it does without Ray (a run folder: config.json,
   metrics.csv, checkpoints); on a cluster `--out` is a path that every node sees.
 - A worker that dies (a node lost, the process killed) has its cell retried, up to `--retries` times: a run folder
   resumes from its own latest checkpoint with its replay buffer, as running the experiment again does.
+- Failures: a cell that fails (its exit code, or a worker that died on every try) is reported once, in one line with
+  its error, as it ends; the other cells go on; at the end one line lists the cells that failed.
+- Ctrl-C stops the cells: each running one saves a checkpoint after its epoch in flight (Ray's cancel raises SIGINT's
+  handler in its worker, as Ctrl-C in `experiments.run` does), the grid waits for them and exits 130 (a second
+  Ctrl-C stops them at once; their latest checkpoints are kept). The same command resumes every cell.
 - Progress: every `--progress-every` seconds a table of the cells with their epochs done (each cell's metrics.csv
   through `report.load_run`, or the `progress` its caller reads) and an ETA, the grid's from its pace so far. As
   each cell ends, the seconds it took in its worker; at the end, the grid's wall time against their sum.
@@ -19,29 +33,51 @@ a machine: `--gpus-per-cell` GPUs (1 by default; a fraction, e.g. 0.5, lets cell
   ".[cluster]"`), or reads it from the shared path.
 
 Ray is an extra: `pip install -e ".[cluster]"`; without it `--ray` is refused with one `error:` line. Exit code of
-a grid: the first failing cell's in the grid's order (`experiments.cli.exit_code`), `EXIT_LOST` when a cell's
-worker died more than `--retries` times, else 0; unlike the sequential path, a failing cell does not stop the others.
+a grid: the first failing cell's in the grid's order (`experiments.cli.exit_code`; `EXIT_LOST` when a cell's worker
+died more than `--retries` times, `EXIT_CRASHED` for a cell whose code raised an error no exit code names), else
+0; 2 when the grid is refused before its cells start (an option, an address that does not answer, an `--out`
+another grid holds); 130 when Ctrl-C stopped it. Unlike the sequential path, a failing cell does not stop the
+others.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import logging
 import os
+import socket
+import subprocess
 import sys
 import time
-from typing import Any, Callable, Sequence
+import urllib.parse
+import warnings
+from typing import Any, Callable, Iterator, Sequence
 
 import experiments
 from bidal_jax.config import ConfigError
+from bidal_jax.run import rundir
 from experiments import report
 
 EXIT_LOST = 5  # a cell's worker died more often than --retries allows
+EXIT_CRASHED = 1  # a cell whose code raised an error that no exit code names (a bug): Python's exit code for it
 EXIT_SIGINT = 130  # the driver stopped by Ctrl-C, as experiments.run's
 # the share of a GPU's memory JAX may take per share of the GPU a cell is given (the rest: CUDA contexts)
 MEMORY_PER_SHARE = 0.9
 # the folder holding the packages, which workers put first on their path (this checkout's code, not another)
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(experiments.__file__)))
+GRID_LOCK = ".grid.lock"  # the lock file in a grid's --out folder (`holding`; a sweep's: beside its --out file)
+CONNECT_TIMEOUT = 5.0  # seconds a --ray-address has to accept a connection before the grid is refused
+JOIN_TIMEOUT = 20.0  # seconds a Ray driver has to join it (`check_joinable`): both together stay under 30 s
+# what `check_joinable` runs in a child process: join the cluster at argv[1] and leave it
+JOIN = ("import sys, ray; ray.init(address=sys.argv[1], include_dashboard=False, log_to_driver=False, "
+        "logging_level=40); ray.shutdown()")
+# the environment of a local Ray that a grid starts, unless already set: its servers on loopback alone (Ray takes
+# the node's address to be 127.0.0.1 where clusters are off, and then binds to it) and Ray's token authentication on
+LOCAL_RAY = {"RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_AUTH_MODE": "token"}
+RAY_PORTS = {"ray": 10001}  # the default port of an address by its scheme (Ray Client's); else the GCS's
+GCS_PORT = 6379
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,9 +102,9 @@ def add_options(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--ray-address", default=None, metavar="ADDRESS",
                        help="join the Ray cluster at ADDRESS (`ray start --head` prints it; 'auto': the one running "
                        "on this machine); implies --ray")
-    group.add_argument("--gpus-per-cell", type=float, default=1.0,
-                       help="GPUs each cell takes: 1, or a fraction (0.5: two cells share a GPU), or 0 on machines "
-                       "without GPUs (default: 1)")
+    group.add_argument("--gpus-per-cell", type=float, default=None,
+                       help="GPUs each cell takes: 1, or a fraction (0.5: two cells share a GPU), or 0: on CPUs "
+                       "(default: 1 where the Ray cluster has GPUs, else 0)")
     group.add_argument("--cpus-per-cell", type=float, default=1.0, help="CPUs each cell takes (default: 1)")
     group.add_argument("--retries", type=int, default=3,
                        help="times a cell whose worker dies is retried, from its latest checkpoint (default: 3)")
@@ -84,7 +120,7 @@ def wanted(args: argparse.Namespace) -> bool:
 def check_options(args: argparse.Namespace) -> None:
     """ConfigError, one line, for a Ray option Ray would refuse or that makes no sense."""
     gpus = args.gpus_per_cell
-    if not (gpus >= 0 and (gpus <= 1 or float(gpus).is_integer())):
+    if gpus is not None and not (gpus >= 0 and (gpus <= 1 or float(gpus).is_integer())):
         raise ConfigError(f"--gpus-per-cell {gpus:g}: must be 0, a fraction of one GPU or a whole number")
     if not args.cpus_per_cell >= 0:
         raise ConfigError(f"--cpus-per-cell {args.cpus_per_cell:g}: must be at least 0")
@@ -152,15 +188,26 @@ def progress_table(cells: Sequence[Cell], done: dict[str, int], states: dict[str
     ])
 
 
-def run_cell(work: Callable[[Any], int], payload: Any, *upstream: tuple[int, float]) -> tuple[int, float]:
-    """A cell's task: (`work(payload)`'s exit code, the seconds it took in the worker), or, without running it,
-    (the first nonzero code of the cells it comes `after`, 0.0) (`upstream`: their results)."""
-    failed = next((code for code, _ in upstream if code), 0)
+def run_cell(work: Callable[[Any], tuple[int, str | None]], payload: Any,
+             *upstream: tuple[int, float, str | None]) -> tuple[int, float, str | None]:
+    """A cell's task: (`work(payload)`'s exit code, the seconds it took in the worker, the one line saying why it
+    failed or None), or, without running it, (the first nonzero code of the cells it comes `after`, 0.0, "not run:
+    ...") (`upstream`: their results). An error of `work` that no exit code names (a bug) is `EXIT_CRASHED` with its
+    type and first line, not a traceback (nor a retry: only a worker that dies is retried)."""
+    failed = next((code for code, _, _ in upstream if code), 0)
     if failed:
-        return failed, 0.0
+        return failed, 0.0, "not run: a cell it starts after failed"  # (`_drive` names it)
     began = time.perf_counter()
-    code = work(payload)
-    return code, time.perf_counter() - began
+    try:
+        code, why = work(payload)
+    except Exception as err:
+        code, why = EXIT_CRASHED, f"error: {type(err).__name__}: {first_line(err)}"
+    return code, time.perf_counter() - began, why
+
+
+def first_line(err: BaseException) -> str:
+    """The first non-empty line of an error's message (its type's name for an empty one)."""
+    return next((line.strip() for line in str(err).splitlines() if line.strip()), type(err).__name__)
 
 
 def efficiency_line(seconds: dict[str, float], wall: float) -> str:
@@ -172,8 +219,54 @@ def efficiency_line(seconds: dict[str, float], wall: float) -> str:
             f"(wall / sum: {ratio})")
 
 
-def import_ray():
-    """The `ray` module; ConfigError when the extra is not installed."""
+def address_of(address: str) -> tuple[str, int]:
+    """(host, port) of a `--ray-address`: HOST:PORT, [IPV6]:PORT or ray://HOST:PORT (Ray Client); without a port,
+    Ray's default (`GCS_PORT`, or Ray Client's). ConfigError for one that is neither."""
+    scheme, _, rest = address.rpartition("://")
+    try:
+        parsed = urllib.parse.urlsplit(f"//{rest}")
+        port = parsed.port
+    except ValueError:
+        port, parsed = None, None
+    if parsed is None or not parsed.hostname:
+        raise ConfigError(f"--ray-address {address}: not an address of a Ray cluster (HOST:PORT, as `ray start "
+                          "--head` prints it, or 'auto')")
+    return parsed.hostname, port or RAY_PORTS.get(scheme, GCS_PORT)
+
+
+def check_reachable(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
+    """ConfigError, one line, when nothing accepts a connection at `address` (`address_of`) within `timeout`
+    seconds (refused, unreachable, an unknown host): Ray itself would retry it for minutes."""
+    host, port = address_of(address)
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except OSError as err:
+        why = f"no answer within {timeout:.0f} s" if isinstance(err, TimeoutError) else err.strerror or str(err)
+        raise ConfigError(f"--ray-address {address}: nothing answers at {host}:{port} ({why}); start the cluster "
+                          "there (`ray start --head`), or leave --ray-address out for a local Ray") from None
+
+
+def check_joinable(address: str, timeout: float = JOIN_TIMEOUT) -> None:
+    """ConfigError, one line, when a Ray driver cannot join the cluster at `address` within `timeout` seconds: tried
+    in a child process (killed at the timeout), since `ray.init` keeps retrying an address that answers but is no
+    Ray cluster's (or one it maps to another of this machine's addresses) for minutes, printing its warnings."""
+    try:
+        done = subprocess.run([sys.executable, "-c", JOIN, address], capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise ConfigError(f"--ray-address {address}: no Ray cluster let a driver join within {timeout:.0f} s; check "
+                          "that `ray start --head` runs there and prints this address (a cluster with token "
+                          "authentication needs RAY_AUTH_MODE=token here too)") from None
+    if done.returncode:
+        last = next((line.strip() for line in reversed(done.stderr.splitlines()) if line.strip()), "")
+        raise ConfigError(f"--ray-address {address}: Ray could not join the cluster ({last or done.returncode})")
+
+
+def import_ray(local: bool = False):
+    """The `ray` module, imported with `LOCAL_RAY`'s settings where unset when it is to start a `local` Ray (Ray
+    reads them as it is imported, and its processes inherit them); ConfigError when the extra is not installed."""
+    if local:
+        for name, value in LOCAL_RAY.items():
+            os.environ.setdefault(name, value)
     try:
         import ray
     except ImportError:
@@ -181,66 +274,171 @@ def import_ray():
     return ray
 
 
-def run_cells(cells: Sequence[Cell], work: Callable[[Any], int], args: argparse.Namespace) -> int:
-    """Train every cell as a Ray task (`run_cell`: `work(cell.payload)` in a worker, returning its exit code),
-    printing a progress table every `args.progress_every` seconds and a line as each cell ends; the grid's exit
-    code (the module docstring; 130 when Ctrl-C stops the driver, whose tasks end with it). Starts a local Ray,
-    or joins `args.ray_address`, unless Ray is running in this process already (then it is left running)."""
-    check_options(args)
-    ray = import_ray()
-    started = not ray.is_initialized()
-    if started:
-        ray.init(address=args.ray_address, include_dashboard=False, log_to_driver=True)
+def start_ray(ray, address: str | None) -> None:
+    """Join the Ray cluster at `address` (checked first, in 30 s at most: `check_reachable`, `check_joinable`; 'auto':
+    the one running on this machine), or start a local one; ConfigError, one line, when Ray cannot."""
+    if address and address != "local":
+        if address != "auto":
+            check_reachable(address)
+        check_joinable(address)
     try:
-        return _drive(ray, cells, work, args)
-    except KeyboardInterrupt:  # the driver's tasks end with it; their cells continue from their checkpoints
-        print("interrupted: the cells' tasks are stopped; run the same command again to resume each from its "
-              "latest checkpoint", file=sys.stderr)
-        return EXIT_SIGINT
+        with warnings.catch_warnings():  # JAX's about fork in a threaded process: Ray's processes fork and exec
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            ray.init(address=address, include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING)
+    except Exception as err:  # no cluster at 'auto', a cluster of another Ray version, a local Ray that fails
+        what = f"--ray-address {address}: Ray could not join the cluster" if address else "--ray: Ray could not start"
+        raise ConfigError(f"{what} ({type(err).__name__}: {first_line(err)})") from None
+
+
+def check_fits(gpus: float, cpus: float, nodes: list[dict]) -> None:
+    """ConfigError, one line, for cells that ask for more GPUs or CPUs than any live node of the cluster has
+    (`nodes`: `ray.nodes()`): Ray would keep them waiting forever."""
+    alive = [node.get("Resources", {}) for node in nodes if node.get("Alive", True)]
+    for asked, resource, option in ((gpus, "GPU", "--gpus-per-cell"), (cpus, "CPU", "--cpus-per-cell")):
+        most = max((float(r.get(resource, 0)) for r in alive), default=0.0)
+        if asked > most:
+            has = f"has no {resource}s" if most == 0 else f"has {most:g} {resource}(s) at most on one node"
+            rest = " (leave --gpus-per-cell out, or 0, to train the cells on CPUs)" if resource == "GPU" else ""
+            raise ConfigError(f"{option} {asked:g}: the Ray cluster {has}; its cells would wait forever{rest}")
+
+
+def cell_gpus(asked: float | None, nodes: list[dict]) -> float:
+    """GPUs per cell: `asked` (--gpus-per-cell), else 1 where a live node of the cluster (`ray.nodes()`) has GPUs,
+    0 where none has (the cells train on CPUs)."""
+    if asked is not None:
+        return asked
+    return 1.0 if any(node.get("Resources", {}).get("GPU", 0) for node in nodes if node.get("Alive", True)) else 0.0
+
+
+@contextlib.contextmanager
+def holding(out: str, lock: str | None = None) -> Iterator[None]:
+    """Hold the grid's `--out` for the block through its lock file (`lock`, by default `GRID_LOCK` in the folder
+    `out`): ConfigError, one line, while another grid holds it (or when the file cannot be made)."""
+    lock = lock or os.path.join(out, GRID_LOCK)
+
+    def in_use(holder: str) -> ConfigError:
+        return ConfigError(f"--out {out}: another grid trains into it ({holder}); wait until it ends or give another "
+                           "--out")
+
+    try:
+        os.makedirs(os.path.dirname(lock) or ".", exist_ok=True)
+        fd = rundir.lock_file(lock, in_use)
+    except OSError as err:
+        raise ConfigError(f"--out {out}: cannot create the grid's lock file {lock} ({err.strerror or err})") from None
+    try:
+        yield
     finally:
+        rundir.unlock_file(lock, fd)
+
+
+def run_cells(cells: Sequence[Cell], work: Callable[[Any], tuple[int, str | None]], args: argparse.Namespace,
+              out: str, lock: str | None = None) -> int:
+    """Train every cell as a Ray task (`run_cell`: `work(cell.payload)` in a worker, returning its exit code and
+    why it failed), holding the grid's `out` (`holding`, through `lock`), printing a progress table every
+    `args.progress_every` seconds and a line as each cell ends; the grid's exit code (the module docstring). Starts
+    a local Ray (`start_ray`), or joins `args.ray_address`, unless Ray is running in this process already (then it
+    is left running). ConfigError, one line, for a grid refused before its cells start."""
+    check_options(args)
+    with holding(out, lock):
+        ray = import_ray(local=not args.ray_address)
+        started = not ray.is_initialized()
         if started:
-            ray.shutdown()
+            start_ray(ray, args.ray_address)
+        try:
+            nodes = ray.nodes()
+            gpus = cell_gpus(args.gpus_per_cell, nodes)
+            check_fits(gpus, args.cpus_per_cell, nodes)
+            return _drive(ray, cells, work, args, gpus)
+        finally:
+            if started:
+                ray.shutdown()
 
 
-def _drive(ray, cells: Sequence[Cell], work: Callable[[Any], int], args: argparse.Namespace) -> int:
+def _drive(ray, cells: Sequence[Cell], work: Callable[[Any], tuple[int, str | None]], args: argparse.Namespace,
+           gpus: float) -> int:
+    """`run_cells` on a running Ray, each cell taking `gpus` GPUs."""
+    print(f"Ray: each of {len(cells)} cell(s) takes {gpus:g} GPU(s) and {args.cpus_per_cell:g} CPU(s)", flush=True)
     task = ray.remote(
-        num_gpus=args.gpus_per_cell, num_cpus=args.cpus_per_cell, max_retries=args.retries, retry_exceptions=False,
-        max_calls=1, runtime_env={"env_vars": worker_env(args.gpus_per_cell)},
+        num_gpus=gpus, num_cpus=args.cpus_per_cell, max_retries=args.retries, retry_exceptions=False, max_calls=1,
+        runtime_env={"env_vars": worker_env(gpus)},
     )(run_cell)
     refs: dict[str, Any] = {}
     for cell in cells:  # a cell's `after` are earlier cells of the grid (others are not trained by this command)
         refs[cell.name] = task.remote(work, cell.payload, *(refs[a] for a in cell.after if a in refs))
     names = {ref: name for name, ref in refs.items()}
+    after = {c.name: [a for a in c.after if a in refs] for c in cells}
     start = {c.name: c.progress() for c in cells}
     states = dict.fromkeys(refs, "queued or training")
     codes: dict[str, int] = {}
+    why: dict[str, str] = {}
     seconds: dict[str, float] = {}
     began = shown = time.time()
     pending = list(refs.values())
-    while pending:
-        ready, pending = ray.wait(pending, num_returns=1, timeout=max(shown + args.progress_every - time.time(), 0))
-        for ref in ready:
-            name = names[ref]
-            codes[name], states[name], took = _result(ray, ref, args.retries)
-            if took:
-                seconds[name] = took
-            print(f"{name}: {states[name]}" + (f" in {took:.0f} s" if took else ""), flush=True)
-        if not pending or time.time() >= shown + args.progress_every:
-            shown = time.time()
-            done = {c.name: c.progress() for c in cells}
-            print(progress_table(cells, done, states, shown - began, start), flush=True)
-    print(efficiency_line(seconds, time.time() - began), flush=True)
-    return next((codes[c.name] for c in cells if codes[c.name]), 0)
-
-
-def _result(ray, ref, retries: int) -> tuple[int, str, float]:
-    """(exit code, state, seconds its last attempt took) of a cell's ended task: its code, or `EXIT_LOST` (and 0
-    seconds) when its worker died once more than `retries` allow (one `error:` line)."""
     try:
-        code, took = ray.get(ref)
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1,
+                                      timeout=max(shown + args.progress_every - time.time(), 0))
+            for ref in ready:
+                name = names[ref]
+                codes[name], states[name], took, reason = _result(ray, ref, args.retries)
+                upstream = [a for a in after[name] if codes.get(a)]
+                if codes[name] and upstream:  # Ray fails a task whose input failed without running it
+                    codes[name], states[name] = codes[upstream[0]], "not run"
+                    reason = f"it starts after {upstream[0]}, which failed"
+                if took:
+                    seconds[name] = took
+                if codes[name]:
+                    why[name] = reason or ""
+                    print(f"error: {name}: {states[name]}" + (f": {strip_error(reason)}" if reason else ""),
+                          file=sys.stderr, flush=True)
+                else:
+                    print(f"{name}: {states[name]}" + (f" in {took:.0f} s" if took else ""), flush=True)
+            if not pending or time.time() >= shown + args.progress_every:
+                shown = time.time()
+                done = {c.name: c.progress() for c in cells}
+                print(progress_table(cells, done, states, shown - began, start), flush=True)
+    except KeyboardInterrupt:
+        return _stop(ray, pending)
+    print(efficiency_line(seconds, time.time() - began), flush=True)
+    failed = [c.name for c in cells if codes[c.name]]
+    if failed:
+        listed = ", ".join(f"{name} ({states[name]})" for name in failed)
+        print(f"error: {len(failed)} of {len(cells)} cell(s) failed: {listed}; the others ended", file=sys.stderr,
+              flush=True)
+    return codes[failed[0]] if failed else 0
+
+
+def strip_error(line: str) -> str:
+    """A cell's one line without its leading "error: " (the grid's own line says it)."""
+    return line.removeprefix("error: ")
+
+
+def _result(ray, ref, retries: int) -> tuple[int, str, float, str | None]:
+    """(exit code, state, seconds its last attempt took, why it failed) of a cell's ended task: its own, or
+    `EXIT_LOST` (and 0 seconds) when its worker died once more than `retries` allow."""
+    try:
+        code, took, why = ray.get(ref)
     except ray.exceptions.RayError as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        print(f"error: a cell's worker died {retries + 1} time(s) ({first}); run the command again to resume it "
-              "from its latest checkpoint", file=sys.stderr)
-        return EXIT_LOST, f"lost (exit {EXIT_LOST})", 0.0
-    return code, "done" if code == 0 else f"failed (exit {code})", took
+        why = (f"its worker died {retries + 1} time(s) ({first_line(err)}); run the command again to resume it from "
+               "its latest checkpoint")
+        return EXIT_LOST, f"lost (exit {EXIT_LOST})", 0.0, why
+    return code, "done" if code == 0 else f"failed (exit {code})", took, why
+
+
+def _stop(ray, pending: list) -> int:
+    """Ctrl-C: cancel the cells still `pending` (a running cell's worker takes it as SIGINT: it saves a checkpoint
+    after its epoch in flight and ends; a queued one never starts), wait for them, `EXIT_SIGINT`. A second Ctrl-C
+    stops them at once, their latest checkpoints kept."""
+    print("SIGINT: stopping the cells, each after a checkpoint of its epoch in flight (Ctrl-C again stops them at "
+          "once)", file=sys.stderr, flush=True)
+    for ref in pending:
+        ray.cancel(ref)
+    try:
+        if pending:
+            ray.wait(pending, num_returns=len(pending))
+    except KeyboardInterrupt:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+    print("interrupted: the cells are stopped, each at its latest checkpoint; run the same command again to resume "
+          "them", file=sys.stderr, flush=True)
+    return EXIT_SIGINT

@@ -20,7 +20,7 @@ from tests.helpers import FINISHED
 # third of the suite's time); $BIDAL_JAX_TEST_CACHE chooses another folder
 CACHE = os.environ.get("BIDAL_JAX_TEST_CACHE") or os.path.join(
     os.environ.get("XDG_CACHE_HOME") or os.path.expanduser(os.path.join("~", ".cache")), "bidal_jax", "tests")
-os.environ.setdefault("BIDAL_JAX_CACHE", CACHE)  # the runs' own cache (`loop.enable_compilation_cache`)
+os.environ.setdefault("BIDAL_JAX_CACHE", CACHE)  # the runs' own cache (`cachefolder.enable`)
 jax.config.update("jax_compilation_cache_dir", CACHE)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

@@ -11,12 +11,16 @@ non-finite metric or parameter stops the run without saving it; `guard`), inside
 directory's lock that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the
 replay buffer, which starts empty; config.json's "fresh_buffer_epochs" records after which epochs.
 Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
-`Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk).
+`ConfigError` (an epoch program larger than the device's memory, `memory.check_program`: refused before it
+trains), `Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk),
+`memory.OutOfMemory` (the device ran out of memory all the same while the program compiled or trained; the last
+good checkpoint is kept).
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import importlib.util
 import json
 import os
@@ -30,7 +34,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bidal_jax.config import Config, ConfigError
-from bidal_jax.run import checkpoint, exported, multihost, rundir, runfiles
+from bidal_jax.run import checkpoint, exported, memory, multihost, rundir, runfiles
 from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
 from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
@@ -184,20 +188,27 @@ def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Calla
 def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:
     """The compiled epoch for `state` (arrays, or their shapes, dtypes and shardings): through `exported` where it
     applies (one device, one env shard, one process, a persistent compilation cache; a line says when the traced
-    program was loaded), else traced and compiled."""
+    program was loaded), else traced and compiled. ConfigError when it needs more of a device's memory than the
+    device has (`memory.check_program`): refused before it trains."""
     where = exported.folder()
+    compiled = None
     if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1 \
             and env.backend == "jax":  # jax.export refuses MuJoCo Warp's custom calls
-        path = os.path.join(where, f"epoch-{exported.program_key(config, env.physics_id, programs.devices)}.jax")
+        key = exported.program_key(config, env.physics_id, programs.devices)
         try:
-            compiled, loaded = exported.compile_epoch(programs.epoch, state, path, log)
+            compiled, loaded, stats = exported.compile_epoch(programs.epoch, state, where, key, log)
             if loaded:
-                log(f"the traced epoch program loaded from {path}")
-            return compiled
+                log(f"the traced epoch program loaded from {exported.path_of(where, key)}")
         except Exception as err:  # a program jax.export refuses: traced as before
+            if memory.exhausted(err):
+                raise
             first = (str(err).splitlines() or [""])[0][:120]
             log(f"the epoch is traced in this process ({type(err).__name__}: {first})")
-    return programs.epoch.lower(state).compile()
+    if compiled is None:
+        compiled = programs.epoch.lower(state).compile()
+        stats = memory.analysis(compiled)
+    memory.check_program(stats, memory.device_memory())
+    return compiled
 
 
 def train(
@@ -282,8 +293,10 @@ def _train(
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
-        epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize,
-                                                  fresh_buffer=fresh_buffer, built=programs)
+        resumed = checkpoint.latest_step(ckpt_dir) if resume else None
+        with memory.out_of_memory("compiling and starting the training program", lambda: _last_good(resumed, ckpt_dir)):
+            epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize,
+                                                      fresh_buffer=fresh_buffer, built=programs)
         cfg = {
             **config.to_dict(),
             "physics": history_record(run.run_dir, "physics", env.physics_id, resume),
@@ -309,6 +322,7 @@ def _train(
         pending = None  # the checkpoint being written while the next epochs train (`checkpoint.save_in_background`)
         bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
                    unit="epoch", initial=start_epoch, total=run.epochs)
+        e = start_epoch
         try:
             for e in bar:
                 t = time.time()
@@ -343,29 +357,22 @@ def _train(
                     raise Interrupted(signum, e, run.run_dir)
                 if done:
                     break
-        except BaseException:
-            # a checkpoint being written is finished first; these errors never mask this one
-            runfiles.close_quietly(*([pending.wait] if pending else []), bar.close, log.close, mngr.close)
+        except BaseException as err:
+            # a checkpoint being written is finished first (then it is the last good one); these errors never mask
+            # this one
+            if pending is not None:
+                with contextlib.suppress(Exception):
+                    pending.wait()
+                    saved = pending.step
+            runfiles.close_quietly(bar.close, log.close, mngr.close)
+            if memory.exhausted(err):  # the device ran out of memory: one line, the last good checkpoint kept
+                raise memory.ran_out(f"training epoch {e}", err, _last_good(saved, ckpt_dir)) from None
             raise
         with rundir.disk_errors(f"closing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             bar.close()
             log.close()
             mngr.close()
     return row
-
-
-def enable_compilation_cache() -> None:
-    """JAX's persistent compilation cache, so that a second run of a config skips compiling: in
-    `$BIDAL_JAX_CACHE`, else in JAX's own `$JAX_COMPILATION_CACHE_DIR`, else in ~/.cache/bidal_jax/xla.
-    JAX fixes the folder at the process's first compile, so call this before anything compiles.
-
-    Every program is kept, however fast it compiled: besides the run's programs, building the env (the camera's
-    static image, MJX's data) and the seeds' keys run some sixty operations one by one, each its own small
-    compile, together a noticeable part of every start on a CPU; read back, they take a fraction of that."""
-    cache = (os.environ.get("BIDAL_JAX_CACHE") or os.environ.get("JAX_COMPILATION_CACHE_DIR")
-             or os.path.join(os.path.expanduser("~"), ".cache", "bidal_jax", "xla"))
-    jax.config.update("jax_compilation_cache_dir", cache)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 
 
 def short_source_locations() -> None:

@@ -7,7 +7,8 @@
 an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
 config; it builds the env and the run's programs once (`loop.make_programs`), checks what the env
 must offer, a resumed run's files, whether the training state (`jax.eval_shape` of those programs) fits
-in the device's memory and one checkpoint of it on the disk and, for a transfer, the source run; then it
+in the device's memory (`memory.check_state`; the compiled epoch is checked once compiled, `memory.check_program`)
+and one checkpoint of it on the disk and, for a transfer, the source run; then it
 locks the run directory (`rundir.hold`, process 0), deletes it with `overwrite`, and holds the lock until
 the `with` block ends: a second run, resumed run or experiment on it is refused. Errors are one line
 each: `ConfigError` (`rundir.RunDirInUse` and `runfiles.RunFileError`, a resumed run's damaged file,
@@ -24,10 +25,8 @@ import shutil
 import time
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
-import jax
-
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
-from bidal_jax.run import loop, multihost, rundir, runfiles, transfer, validate
+from bidal_jax.run import loop, memory, multihost, rundir, runfiles, transfer, validate
 from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, read_metadata
 
 # fields whose value on resume may differ from the checkpoint's: the budget, the place, how the convs are
@@ -37,8 +36,6 @@ RESUME_MAY_CHANGE = ("epochs", "run_dir", "conv_impl", "physics")
 RUN_FILES = frozenset(
     {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
 )
-# share of the device's memory the training state may take (the rest: activations, copies)
-MEMORY_SHARE = 0.9
 
 
 class Prepared(NamedTuple):
@@ -140,25 +137,6 @@ def check_run_dir(run_dir: str, overwrite: bool) -> None:
         )
 
 
-def device_memory() -> int:
-    """Bytes of memory of this process's first device: the accelerator's limit, or the host's RAM on a CPU."""
-    stats = jax.local_devices()[0].memory_stats() or {}
-    if "bytes_limit" in stats:
-        return int(stats["bytes_limit"])
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-
-
-def check_memory(needed: int, available: int, seeds: int) -> None:
-    """Refuse a training state whose share on one device (`needed` bytes) cannot fit in
-    `MEMORY_SHARE` of that device's memory."""
-    if needed > MEMORY_SHARE * available:
-        gib = 2.0**30
-        raise ConfigError(
-            f"--seeds {seeds}: the training state needs {needed / gib:,.1f} GiB, more than {MEMORY_SHARE:.0%} of the "
-            f"device's {available / gib:,.1f} GiB; use fewer seeds, envs or --buffer-episodes"
-        )
-
-
 @contextlib.contextmanager
 def prepare(
     given: dict[str, Any],
@@ -210,7 +188,7 @@ def prepare(
     programs = loop.make_programs(env, config)
     state = programs.abstract_state()
     whole = rundir.tree_bytes(state)  # every seed's: what a checkpoint holds
-    check_memory(whole // len(programs.devices), device_memory(), run.seeds)
+    memory.check_state(whole // len(programs.devices), memory.device_memory(), run.seeds)
     rundir.check_space(run.run_dir, whole)
     if run.init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(config, state, env.observation_spec.proprio_segments, make_env)

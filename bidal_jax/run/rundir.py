@@ -7,7 +7,8 @@ failures reported in one line.
   by SIGKILL, so a lock file left behind never blocks (it is not a lock, only a file). Another
   process's `hold` raises `RunDirInUse` at once (it waits for nothing and writes nothing).
   `release` deletes the lock file before it unlocks; `hold` checks that the file it locked is
-  still the one at the path, so two processes never both hold one directory.
+  still the one at the path, so two processes never both hold one directory. `lock_file` and
+  `unlock_file` are that lock on any file (a grid's `--out`: `experiments.cluster`).
 - `check_space(directory, needed)` refuses (`DiskError`) a run whose file system has less free
   space than one checkpoint needs (`with_margin`: its arrays' bytes, uncompressed, plus a margin).
 - `disk_errors(what, last_good)`: a block whose disk failure (no space, quota, read-only file
@@ -31,7 +32,7 @@ import re
 import shutil
 import socket
 import sys
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import jax
 import numpy as np
@@ -76,12 +77,16 @@ def _same_file(fd: int, path: str) -> bool:
         return False
 
 
-def _in_use(fd: int, run_dir: str) -> RunDirInUse:
-    """The error naming the holder of the lock file `fd` (closed here)."""
+def _holder(fd: int) -> str:
+    """Who holds the lock file `fd` (closed here), as it says: "host H, PID P"."""
     holder = os.read(fd, 256).decode(errors="replace").strip() or "which has not written its host and PID yet"
     os.close(fd)
-    return RunDirInUse(f"run directory {run_dir} is in use by another run ({holder}); "
-                       "wait until it ends or use another directory")
+    return holder
+
+
+def _run_dir_in_use(run_dir: str) -> Callable[[str], RunDirInUse]:
+    return lambda holder: RunDirInUse(f"run directory {run_dir} is in use by another run ({holder}); "
+                                      "wait until it ends or use another directory")
 
 
 def check_not_in_use(run_dir: str) -> None:
@@ -94,21 +99,33 @@ def check_not_in_use(run_dir: str) -> None:
     try:
         fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
     except BlockingIOError:
-        raise _in_use(fd, run_dir) from None
+        raise _run_dir_in_use(run_dir)(_holder(fd)) from None
     os.close(fd)  # unlocks
 
 
-def _lock(path: str, run_dir: str) -> int:
-    """The descriptor of `path`, created if need be and exclusively locked; RunDirInUse if held."""
+def lock_file(path: str, in_use: Callable[[str], Exception]) -> int:
+    """The descriptor of `path`, created if need be, exclusively locked for this process and holding "host H, PID
+    P"; `in_use(holder)` is raised, at once, while another process holds it (`holder`: what its file says). An
+    OSError when it cannot be created."""
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise _in_use(fd, run_dir) from None
+            raise in_use(_holder(fd)) from None
         if _same_file(fd, path):
-            return fd
+            break
         os.close(fd)  # its holder deleted it between our open and lock: lock the file now at the path
+    os.ftruncate(fd, 0)
+    os.write(fd, f"host {socket.gethostname()}, PID {os.getpid()}\n".encode())
+    return fd
+
+
+def unlock_file(path: str, fd: int) -> None:
+    """Delete the lock file `path` that `lock_file` locked as `fd`, then unlock it."""
+    with contextlib.suppress(OSError):
+        os.unlink(path)
+    os.close(fd)
 
 
 def hold(run_dir: str) -> None:
@@ -119,23 +136,18 @@ def hold(run_dir: str) -> None:
         return
     try:
         os.makedirs(run_dir, exist_ok=True)
-        fd = _lock(os.path.join(run_dir, LOCK_FILE), run_dir)
+        _held[key] = lock_file(os.path.join(run_dir, LOCK_FILE), _run_dir_in_use(run_dir))
     except RunDirInUse:
         raise
     except OSError as err:
         raise ConfigError(f"run directory {run_dir}: cannot create its lock file ({err.strerror})") from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"host {socket.gethostname()}, PID {os.getpid()}\n".encode())
-    _held[key] = fd
 
 
 def release(run_dir: str) -> None:
     """Delete `run_dir`'s lock file and unlock it, if this process holds it."""
     fd = _held.pop(os.path.realpath(run_dir), None)
     if fd is not None:
-        with contextlib.suppress(OSError):
-            os.unlink(os.path.join(run_dir, LOCK_FILE))
-        os.close(fd)
+        unlock_file(os.path.join(run_dir, LOCK_FILE), fd)
 
 
 # ----- disk space and disk errors ----------------------------------------------------------------

@@ -121,13 +121,13 @@ def rows_written(path: str) -> int:
         return 0
 
 
-def train_part(payload: tuple) -> int:
+def train_part(payload: tuple) -> tuple[int, None]:
     """A Ray task's variant (`cluster.run_cells`): `train_variant` into its part file, written afresh (a retried
     variant starts again: it has no checkpoint); exit code 0."""
     args, label, overrides, network, options, path = payload
     with open(path, "w") as sink:
         train_variant(args, label, overrides, network, options, sink)
-    return 0
+    return 0, None
 
 
 def train_on_ray(args, variants: list) -> int:
@@ -139,7 +139,7 @@ def train_on_ray(args, variants: list) -> int:
     cells = [cluster.Cell(f"{i}: {label}", args.epochs, (args, label, *parsed, path),
                           lambda path=path: rows_written(path)) for i, ((label, parsed), path) in
              enumerate(zip(variants, paths))]
-    code = cluster.run_cells(cells, train_part, args)
+    code = cluster.run_cells(cells, train_part, args, args.out, lock=f"{args.out}{cluster.GRID_LOCK}")
     with open(args.out, "a") as sink:
         for path in paths:
             if os.path.exists(path):

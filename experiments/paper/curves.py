@@ -267,7 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.dry_run:
                 print(grid.DRY_RUN)
                 return 0
-            code = grid.train_arms(blocks, envs, args)
+            code = grid.train_arms(blocks, envs, args, out)
         variant = f", {LIFT} without held starts" if out.endswith(grid.PLAIN) else ""
         title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
         if multihost.is_main():  # one process writes the results

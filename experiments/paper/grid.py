@@ -371,28 +371,30 @@ def train_arm(arm: Arm, env, quiet: bool, fresh_buffer: bool = False) -> None:
     cli.print_summary(config.run, row)
 
 
-def train_cell(payload: tuple[Arm, bool]) -> int:
+def train_cell(payload: tuple[Arm, bool]) -> tuple[int, str | None]:
     """A Ray task's run (`cluster.run_cells`): `train_arm` of the arm in `payload` (with its `fresh_buffer`) on an
-    env built in the worker, without progress bars (the driver prints the grid's table); its exit code."""
+    env built in the worker, without progress bars (the driver prints the grid's table); its exit code and, when
+    it failed, its one line (`cli.failure`), which the driver reports."""
     arm, fresh_buffer = payload
     try:
         train_arm(arm, envs_mjx.make(arm.given["env"], render=arm.config.agent.uses_image), True, fresh_buffer)
     except cli.FAILURES as err:
-        return cli.exit_code(err)
-    return 0
+        return cli.failure(err)
+    return 0, None
 
 
-def train_arms(arms: Sequence[Arm], envs: dict[str, Any], args: argparse.Namespace) -> int:
-    """Train the runs (`args`: an experiment's `quiet`, `add_training_options`); the exit code. A stale run among
-    them (`refuse_stale`) is refused before any trains: 2. Without `--ray`, in order in this process (`train_arm`)
-    until one fails or is stopped; with it, each a cell of `cluster.run_cells`, all at once where the machine or
-    cluster has room, an arm after those of `arms` it names in `after`."""
+def train_arms(arms: Sequence[Arm], envs: dict[str, Any], args: argparse.Namespace, out: str) -> int:
+    """Train the runs (`args`: an experiment's `quiet`, `add_training_options`) of the experiment in the folder `out`;
+    the exit code. A stale run among them (`refuse_stale`) is refused before any trains: 2. Without `--ray`, in
+    order in this process (`train_arm`) until one fails or is stopped; with it, each a cell of `cluster.run_cells`,
+    all at once where the machine or cluster has room, an arm after those of `arms` it names in `after`, `out`
+    held by the grid (a second grid on it is refused: 2)."""
     try:
         refuse_stale(arms, envs)
         if cluster.wanted(args):
             cells = [cluster.Cell(arm.name, arm.epochs, (arm, args.fresh_buffer),
                                   functools.partial(cluster.epochs_done, arm.run_dir), arm.after) for arm in arms]
-            return cluster.run_cells(cells, train_cell, args)
+            return cluster.run_cells(cells, train_cell, args, out)
         for arm in arms:
             train_arm(arm, envs[arm.name], args.quiet, args.fresh_buffer)
     except cli.FAILURES as err:

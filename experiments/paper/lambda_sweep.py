@@ -126,7 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.dry_run:
                 print(grid.DRY_RUN)
                 return 0
-            code = grid.train_arms(arms, envs, args)
+            code = grid.train_arms(arms, envs, args, args.out)
         runs = {(arm.given["env"], arm.given["intrinsic_lambda"]): run for arm in arms
                 if (run := grid.loaded(arm.run_dir))}
         grid.write_table(args.out, table(lambdas, runs))

@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         print(grid.DRY_RUN)
         return 0
     os.makedirs(args.out, exist_ok=True)
-    code = grid.train_arms(arms, envs, args)
+    code = grid.train_arms(arms, envs, args, args.out)
     if code:
         return code
     if multihost.is_main():  # one process writes the results, from every run folder in --out (other programs' too)

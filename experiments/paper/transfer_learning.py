@@ -280,7 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         grid.refuse_stale(source, envs)
         refuse_unfinished_source(arms, train_names)
-        code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args)
+        code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args, out)
     except ConfigError as err:
         code = cli.exit_code(err)
     variant = ", no held starts" if out.endswith(grid.PLAIN) else ""

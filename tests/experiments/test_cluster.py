@@ -1,6 +1,10 @@
 """Grids through Ray (experiments/cluster.py) on a local Ray of 2 CPUs: a 2-cell tiny grid fills both run folders,
 and a cell whose worker is killed mid-run is retried, resumes from its checkpoint with its replay buffer and ends
-with every epoch's row exactly once; the progress table and the option checks without Ray."""
+with every epoch's row exactly once; the command line's local Ray listens on loopback alone, Ctrl-C stops its cell
+with a checkpoint (exit 130) and the same command resumes it. Without Ray: the progress table and the option
+checks; on a Ray of this process (`FakeRay`), the grid under faults: a cell failing on every try is reported once
+while the others go on, Ctrl-C cancels the cells and waits for their checkpoints, a second grid on one --out is
+refused, an address nothing answers is refused at once, the cells' GPUs follow the cluster's."""
 
 import argparse
 import contextlib
@@ -9,18 +13,21 @@ import json
 import os
 import re
 import signal
+import socket
+import subprocess
 import sys
 import threading
 import time
+import types
 
 import pytest
 
 from bidal_jax.config import ConfigError
-from bidal_jax.run import metrics
+from bidal_jax.run import checkpoint, metrics
 from experiments import cluster
 from experiments.bench import sweep
 from experiments.paper import grid
-from tests.helpers import rows
+from tests.helpers import REPO, rows
 
 ray = pytest.importorskip("ray")
 
@@ -62,7 +69,7 @@ def filled(local_ray, tmp_path_factory):
     arms = [arm(out / "a", 0), arm(out / "b", 1)]
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        code = grid.train_arms(arms, grid.make_envs(arms), ray_args())
+        code = grid.train_arms(arms, grid.make_envs(arms), ray_args(), str(out))
     return arms, code, printed.getvalue()
 
 
@@ -129,7 +136,7 @@ def test_a_killed_worker_resumes_its_cell_from_its_checkpoint_with_its_buffer(fi
     killer.start()
     cells = [cluster.Cell(resumed.name, EPOCHS, ((resumed, False), str(tmp_path)),
                           lambda: cluster.epochs_done(resumed.run_dir))]
-    code = cluster.run_cells(cells, train_paused_once, ray_args(retries=1))
+    code = cluster.run_cells(cells, train_paused_once, ray_args(retries=1), str(tmp_path))
     killer.join()
     assert killed and code == 0
     assert (tmp_path / "attempts").read_text().split() == ["None", "1"]  # fresh, then from checkpoint 1
@@ -175,9 +182,17 @@ def test_the_grid_reports_its_wall_time_against_its_cells_summed_time():
 
 def test_a_cell_after_a_failed_one_does_not_run():
     ran = []
-    assert cluster.run_cell(ran.append, "x", (0, 5.0), (2, 1.0)) == (2, 0.0) and ran == []
-    code, took = cluster.run_cell(lambda payload: 0, "x", (0, 5.0))
-    assert code == 0 and took >= 0.0
+    assert cluster.run_cell(ran.append, "x", (0, 5.0, None), (2, 1.0, "error: bad")) == (
+        2, 0.0, "not run: a cell it starts after failed") and ran == []
+    code, took, why = cluster.run_cell(lambda payload: (0, None), "x", (0, 5.0, None))
+    assert code == 0 and took >= 0.0 and why is None
+
+
+def test_a_cell_whose_code_raises_fails_in_one_line_without_a_traceback():
+    def bug(payload):
+        raise ValueError("no such thing\nmore")
+
+    assert cluster.run_cell(bug, "x")[::2] == (cluster.EXIT_CRASHED, "error: ValueError: no such thing")
 
 
 @pytest.mark.parametrize("option, value, expected", [
@@ -197,8 +212,280 @@ def test_a_fraction_of_a_gpu_limits_the_workers_jax_memory():
     assert cluster.worker_env(0)["PYTHONPATH"].split(os.pathsep)[0] == cluster.ROOT
 
 
-def test_ray_without_the_extra_is_refused(monkeypatch):
+def test_ray_without_the_extra_is_refused(monkeypatch, tmp_path):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` fails as where the cluster extra is not installed
     cells = [cluster.Cell("a", 1, None, lambda: 0)]
     with pytest.raises(ConfigError, match=r'--ray needs Ray: pip install -e "\.\[cluster\]"'):
-        cluster.run_cells(cells, lambda payload: 0, ray_args())
+        cluster.run_cells(cells, lambda payload: (0, None), ray_args(), str(tmp_path))
+
+
+# ----- the grid under faults, on a Ray of this process (`FakeRay`): failures, Ctrl-C, --out, addresses, GPUs -------
+
+
+class WorkerDied(BaseException):
+    """What a cell's `work` raises in `FakeRay` to have its worker die (as a SIGKILL or a segfault would: no Python
+    exception a cell could catch)."""
+
+
+class FakeRay:
+    """Enough of Ray's API for `cluster.run_cells`, run in this process: a task runs when it is submitted, a worker
+    that dies (`WorkerDied`) is retried up to `max_retries` times, then its result is Ray's WorkerCrashedError, and a
+    task whose input failed fails alike without running. `nodes` are what `ray.nodes()` gives; `interrupts`: how many
+    of the next `wait` calls raise KeyboardInterrupt (Ctrl-C)."""
+
+    class exceptions:  # noqa: N801 - Ray's module name
+        class RayError(Exception):
+            pass
+
+        class WorkerCrashedError(RayError):
+            pass
+
+    def __init__(self, nodes=({"Alive": True, "Resources": {"CPU": 2.0}},), initialized=True, interrupts=0):
+        self.nodes_, self.initialized, self.interrupts = list(nodes), initialized, interrupts
+        self.options, self.attempts, self.results, self.cancelled, self.waits = {}, {}, {}, [], []
+
+    def is_initialized(self):
+        return self.initialized
+
+    def init(self, **kwargs):
+        raise AssertionError(f"Ray was started: {kwargs}")
+
+    def nodes(self):
+        return self.nodes_
+
+    def remote(self, **options):
+        self.options = options
+
+        def wrap(function):
+            return types.SimpleNamespace(remote=lambda *args: self._run(function, *args))
+
+        return wrap
+
+    def _run(self, function, work, payload, *inputs):
+        ref, upstream = object(), [self.results[i] for i in inputs]  # Ray passes a task its inputs' values
+        failed = [u for u in upstream if isinstance(u, Exception)]
+        if failed:
+            self.attempts[ref], result = 0, failed[0]
+        else:
+            for attempt in range(1, self.options["max_retries"] + 2):
+                self.attempts[ref] = attempt
+                try:
+                    result = function(work, payload, *upstream)
+                    break
+                except WorkerDied:
+                    result = self.exceptions.WorkerCrashedError(
+                        "The worker died unexpectedly while executing this task. Check python-core-worker-*.log "
+                        "files for more information.")
+        self.results[ref] = result
+        return ref
+
+    def wait(self, refs, num_returns=1, timeout=None):
+        self.waits.append(num_returns)
+        if self.interrupts:
+            self.interrupts -= 1
+            raise KeyboardInterrupt
+        return list(refs[:num_returns]), list(refs[num_returns:])
+
+    def get(self, ref):
+        if isinstance(self.results[ref], Exception):
+            raise self.results[ref]
+        return self.results[ref]
+
+    def cancel(self, ref, force=False):
+        self.cancelled.append((ref, force))
+
+
+def cell(name, after=()):
+    return cluster.Cell(name, 1, name, lambda: 0, tuple(after))
+
+
+def work_of(outcomes, ran):
+    """A cell's `work` whose outcome is `outcomes[payload]`: (code, line), or `WorkerDied` raised."""
+    def work(payload):
+        ran.append(payload)
+        if outcomes[payload] is WorkerDied:
+            raise WorkerDied
+        return outcomes[payload]
+
+    return work
+
+
+@pytest.fixture
+def fake_ray(monkeypatch):
+    """`cluster.import_ray` gives a `FakeRay` (a running one by default); the fixture sets it up."""
+    def use(**kwargs):
+        fake = FakeRay(**kwargs)
+        monkeypatch.setattr(cluster, "import_ray", lambda local=False: fake)
+        return fake
+
+    return use
+
+
+def test_a_cell_that_fails_on_every_try_is_reported_once_and_the_others_go_on(fake_ray, tmp_path, capsys):
+    """b's worker dies on each of its 3 tries, c fails with its own error, d starts after b: each is reported once
+    with its error as it ends, a and e train, and the grid exits with the first failure's code, listing them all."""
+    fake = fake_ray()
+    ran = []
+    outcomes = {"a": (0, None), "b": WorkerDied, "c": (2, "error: --batch-size 0: must be a positive integer"),
+                "d": (0, None), "e": (0, None)}
+    cells = [cell("a"), cell("b"), cell("c"), cell("d", after=["b"]), cell("e")]
+    code = cluster.run_cells(cells, work_of(outcomes, ran), ray_args(retries=2), str(tmp_path))
+    out, err = capsys.readouterr()
+    assert code == cluster.EXIT_LOST and ran == ["a", "b", "b", "b", "c", "e"]
+    assert sorted(fake.attempts.values()) == [0, 1, 1, 1, 3]  # b: 3 tries; d: none
+    assert err.splitlines() == [
+        "error: b: lost (exit 5): its worker died 3 time(s) (The worker died unexpectedly while executing this task. "
+        "Check python-core-worker-*.log files for more information.); run the command again to resume it from its "
+        "latest checkpoint",
+        "error: c: failed (exit 2): --batch-size 0: must be a positive integer",
+        "error: d: not run: it starts after b, which failed",
+        "error: 3 of 5 cell(s) failed: b (lost (exit 5)), c (failed (exit 2)), d (not run); the others ended",
+    ]
+    assert re.search(r"^a: done in \d+ s$", out, re.M) and re.search(r"^e: done in \d+ s$", out, re.M)
+    assert not os.path.exists(tmp_path / cluster.GRID_LOCK)  # released
+
+
+def test_ctrl_c_stops_the_cells_and_exits_130_with_one_line(fake_ray, tmp_path, capsys):
+    """Ctrl-C while the grid waits: every cell still pending is cancelled (Ray raises SIGINT's handler in a running
+    cell's worker: it saves a checkpoint after its epoch in flight), the grid waits for them all and exits 130; a
+    second Ctrl-C while it waits cancels them at once."""
+    fake = fake_ray(interrupts=1)
+    cells = [cell("a"), cell("b")]
+    work = work_of({"a": (0, None), "b": (0, None)}, [])
+    assert cluster.run_cells(cells, work, ray_args(), str(tmp_path)) == 130
+    err = capsys.readouterr().err.splitlines()
+    assert [force for _, force in fake.cancelled] == [False, False] and fake.waits == [1, 2]
+    assert err == ["SIGINT: stopping the cells, each after a checkpoint of its epoch in flight (Ctrl-C again stops "
+                   "them at once)", "interrupted: the cells are stopped, each at its latest checkpoint; run the same "
+                   "command again to resume them"]
+    fake = fake_ray(interrupts=2)
+    assert cluster.run_cells(cells, work, ray_args(), str(tmp_path)) == 130
+    assert [force for _, force in fake.cancelled] == [False, False, True, True]
+    assert capsys.readouterr().err.splitlines()[-1].startswith("interrupted: ")
+
+
+def test_two_grids_on_one_out_are_refused(fake_ray, tmp_path, capsys):
+    """A grid holds its --out while its cells train: a second grid on it is refused in one line, exit 2, before its
+    Ray starts; once the first has ended, the folder is free."""
+    fake = fake_ray(initialized=False)  # would fail the test if the refused grid started Ray
+    out = tmp_path / "curves"
+    with cluster.holding(str(out)):
+        assert grid.train_arms([], {}, ray_args(), str(out)) == 2
+    assert capsys.readouterr().err.splitlines() == [
+        f"error: --out {out}: another grid trains into it (host {socket.gethostname()}, PID {os.getpid()}); wait "
+        "until it ends or give another --out"]
+    fake.initialized = True
+    assert grid.train_arms([], {}, ray_args(), str(out)) == 0
+
+
+def test_an_address_nothing_answers_is_refused_in_one_line_within_30_s(fake_ray, monkeypatch, tmp_path):
+    """Ray itself retries an address nothing answers for minutes; the grid refuses it at once, before `ray.init`
+    (which fails this test if called), and one that answers but lets no driver join within 20 s."""
+    fake_ray(initialized=False)
+    with socket.socket() as s:  # a port that nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    out = str(tmp_path)
+    began = time.time()
+    with pytest.raises(ConfigError, match=rf"^--ray-address 127\.0\.0\.1:{port}: nothing answers at 127\.0\.0\.1:"
+                                          rf"{port} \(Connection refused\); start the cluster there"):
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address=f"127.0.0.1:{port}"), out)
+    assert time.time() - began < 30
+
+    def silent(address, timeout):
+        raise TimeoutError("timed out")
+
+    monkeypatch.setattr(cluster.socket, "create_connection", silent)
+    with pytest.raises(ConfigError, match=r"nothing answers at 10\.1\.2\.3:6379 \(no answer within 5 s\)"):
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3"), out)
+    with pytest.raises(ConfigError, match=r"--ray-address head:port: not an address of a Ray cluster"):
+        cluster.check_reachable("head:port")
+
+    def answers(address, timeout):  # a port that accepts, but is no Ray cluster's: a driver cannot join
+        return types.SimpleNamespace(close=lambda: None)
+
+    def hangs(command, timeout, **kwargs):
+        raise subprocess.TimeoutExpired(command, timeout)
+
+    monkeypatch.setattr(cluster.socket, "create_connection", answers)
+    monkeypatch.setattr(cluster.subprocess, "run", hangs)
+    with pytest.raises(ConfigError, match=r"^--ray-address 10\.1\.2\.3:8000: no Ray cluster let a driver join "
+                                          r"within 20 s; check that `ray start --head` runs there"):
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(ray_address="10.1.2.3:8000"), out)
+    assert cluster.address_of("ray://head") == ("head", 10001) and cluster.address_of("[::1]:6380") == ("::1", 6380)
+
+
+@pytest.mark.parametrize("resources, asked, gpus", [({"CPU": 8.0}, None, 0.0), ({"CPU": 8.0, "GPU": 2.0}, None, 1.0),
+                                                    ({"CPU": 8.0, "GPU": 2.0}, 0.5, 0.5)])
+def test_cells_take_a_gpu_where_the_cluster_has_gpus_else_train_on_cpus(fake_ray, tmp_path, capsys, resources, asked,
+                                                                        gpus):
+    fake = fake_ray(nodes=[{"Alive": True, "Resources": resources}])
+    args = ray_args(gpus_per_cell=asked)
+    assert cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), args, str(tmp_path)) == 0
+    assert fake.options["num_gpus"] == gpus
+    assert f"Ray: each of 1 cell(s) takes {gpus:g} GPU(s) and 1 CPU(s)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("gpus, cpus, message", [
+    (1.0, 1.0, r"--gpus-per-cell 1: the Ray cluster has no GPUs; its cells would wait forever \(leave "
+               r"--gpus-per-cell out, or 0, to train the cells on CPUs\)"),
+    (0.0, 16.0, r"--cpus-per-cell 16: the Ray cluster has 8 CPU\(s\) at most on one node; its cells would wait "
+                r"forever$"),
+])
+def test_cells_asking_for_what_no_node_has_are_refused(fake_ray, tmp_path, gpus, cpus, message):
+    fake_ray(nodes=[{"Alive": True, "Resources": {"CPU": 8.0}}, {"Alive": False, "Resources": {"CPU": 64.0,
+                                                                                               "GPU": 8.0}}])
+    with pytest.raises(ConfigError, match=message):
+        cluster.run_cells([cell("a")], work_of({"a": (0, None)}, []), ray_args(gpus_per_cell=gpus, cpus_per_cell=cpus),
+                          str(tmp_path))
+
+
+GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", "300", "--ray",
+        "--progress-every", "1", "--quiet", "--num-envs", "4", "--cycles-per-epoch", "2", "--updates-per-cycle", "2",
+        "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--checkpoint-every", "100"]
+LOOPBACK = ("127.0.0.1", "::ffff:127.0.0.1", "::1")
+
+
+def listening(pid: int) -> list[tuple[str, str]]:
+    """(process name, address) of every socket that the process `pid` and its descendants listen on."""
+    import psutil  # Ray installs it
+
+    found = []
+    root = psutil.Process(pid)
+    for process in [root, *root.children(recursive=True)]:
+        with contextlib.suppress(psutil.Error):
+            found += [(process.name(), c.laddr.ip) for c in process.net_connections(kind="inet")
+                      if c.status == psutil.CONN_LISTEN]
+    return found
+
+
+@pytest.mark.slow
+def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_resumes(tmp_path):
+    """`python -m experiments.paper.curves --ray` of one 300-epoch cell: while it trains, every socket its local Ray
+    listens on is on loopback; SIGINT to the grid's process once epoch 3 is written stops the cell with a checkpoint
+    at its last epoch and exits 130 with one line; the same command resumes it, and the run ends with every epoch's
+    row once, its replay buffer restored."""
+    command = [sys.executable, "-m", "experiments.paper.curves", *GRID, "--out", str(tmp_path / "curves")]
+    run_dir = tmp_path / "curves" / "planar_reach" / "proprio_baseline"
+    driver = subprocess.Popen(command, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 240
+        while not (run_dir / "metrics.csv").exists() or len((run_dir / "metrics.csv").read_text().splitlines()) < 4:
+            assert time.time() < deadline and driver.poll() is None, driver.stderr.read()
+            time.sleep(0.1)
+        sockets = listening(driver.pid)
+        driver.send_signal(signal.SIGINT)
+        err = driver.communicate(timeout=120)[1]
+    finally:
+        driver.kill()
+    assert "gcs_server" in [name for name, _ in sockets] and all(ip in LOOPBACK for _, ip in sockets), sockets
+    assert driver.returncode == 130, err
+    own = [line for line in err.splitlines() if not line.startswith("\x1b") and not line.startswith("(")]
+    assert [line for line in own if line.startswith(("interrupted", "error"))] == [
+        "interrupted: the cells are stopped, each at its latest checkpoint; run the same command again to resume them"
+    ] and "Traceback" not in err, err
+    stopped = checkpoint.latest_step(str(run_dir / "checkpoints"))
+    assert 3 <= stopped < 300 and epochs(run_dir)[-1] == stopped  # saved after the epoch in flight
+    again = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert epochs(run_dir) == list(range(1, 301)) and grid.loaded(str(run_dir))["config"]["fresh_buffer_epochs"] == []

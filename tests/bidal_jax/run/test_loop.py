@@ -220,22 +220,6 @@ def test_sigint_and_sigterm_save_a_checkpoint_and_exit(tmp_path):
     assert [int(r["epoch"]) for r in metric_rows(run_dir)] == list(range(1, second + 1))
 
 
-@pytest.mark.parametrize(
-    "ours, jaxs, expected", [("/a", "/b", "/a"), ("", "/b", "/b"), ("", "", "~/.cache/bidal_jax/xla")]
-)
-def test_the_cache_folder_is_ours_else_jaxs_else_the_default(monkeypatch, ours, jaxs, expected):
-    for name, value in (("BIDAL_JAX_CACHE", ours), ("JAX_COMPILATION_CACHE_DIR", jaxs)):
-        monkeypatch.setenv(name, value) if value else monkeypatch.delenv(name, raising=False)
-    kept = jax.config.jax_compilation_cache_dir, jax.config.jax_persistent_cache_min_compile_time_secs
-    try:
-        loop.enable_compilation_cache()
-        folder = jax.config.jax_compilation_cache_dir
-    finally:
-        jax.config.update("jax_compilation_cache_dir", kept[0])
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", kept[1])
-    assert folder == os.path.expanduser(expected)
-
-
 def test_a_new_runs_state_and_epoch_built_side_by_side_are_the_programs_own(tmp_path):
     """`build` compiles the epoch for the state's shapes while the state is computed in another thread: the state
     and one epoch of it are bitwise those of the programs called one after the other."""

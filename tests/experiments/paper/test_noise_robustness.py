@@ -139,6 +139,6 @@ def test_a_run_folder_the_table_cannot_read_after_training_is_one_line_and_exit_
     broken = os.path.join(out, "proprio_baseline-kappa15")  # another program's folder, its config.json gone
     write_fake_run(broken, "planar_reach", [[0.5] * 2], None, agent="proprio_baseline")
     os.remove(os.path.join(broken, "config.json"))
-    monkeypatch.setattr(noise.grid, "train_arms", lambda arms, envs, quiet: 0)  # this program's training, done
+    monkeypatch.setattr(noise.grid, "train_arms", lambda arms, envs, args, out: 0)  # this program's training, done
     assert noise.main([*TINY, "--kappas", "0.05", "--out", out]) == 2
     assert capsys.readouterr().err == f"error: {broken}: not a run directory (no config.json)\n"
