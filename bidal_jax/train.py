@@ -116,8 +116,7 @@ def optimizer(lr: float, grad_clip: float) -> optax.GradientTransformation:
     """Adam at rate `lr` on gradients clipped to global norm `grad_clip`, over a network group's parameters
     raveled into one vector (`optax.flatten`): the same update (Adam is elementwise, the norm spans every
     element either way) as one set of operations instead of one per parameter array, a smaller program to
-    compile (docs/results.md, "Where the epoch's code goes"). Checkpoints saved with one moment per parameter
-    array restore raveled (`checkpoint.restore`)."""
+    compile. Checkpoints saved with one moment per parameter array restore raveled (`checkpoint.restore`)."""
     return optax.flatten(optax.chain(optax.clip_by_global_norm(grad_clip), optax.adam(lr)))
 
 

@@ -1,0 +1,282 @@
+"""docs/results.md, written from the figures that live beside the runs in results/.
+
+    python -m experiments.paper.results_docs [--check]
+
+Each folder of `FOLDERS` under results/ holds figures.json: a list of sections, each with its part of the
+document (one of `PARTS`), title, `about` (what it measures), the command that measures it, the machine, the date
+and commit the figures were recorded at, and its table: given as {"head": [...], "rows": [[...], ...]} (figures
+entered by hand, such as timings) or the name of a table computed from run files (`TABLES`), whose "runs" field
+says which (paths relative to results/). Optional: a `note` (what the figures say) and a `figure` (an image in the
+folder). A measurement that is superseded is replaced in its figures.json; git keeps its history.
+
+The command writes docs/results.md (a pure function of those files, `document`); `--check` writes nothing and
+exits 1 when the file is not what it would write, as tests/experiments/paper/test_results_docs.py checks. Exit codes: 2
+a figures.json or run file that cannot be read, 4 the write failed (one `error: ...` line each), 130 Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import sys
+from typing import Callable, Sequence
+
+import numpy as np
+
+from bidal_jax.config import AGENTS
+from bidal_jax.run import rundir, runfiles
+from experiments import cli, report, stats
+from experiments.paper import protocol
+
+PROG = "python -m experiments.paper.results_docs"
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+DOC = os.path.join("docs", "results.md")
+PARTS = ("Performance", "Learning (paper Fig. 4)", "Noise (paper Table II)", "Transfer (paper Fig. 6)",
+         "Reliability")
+# the folders of results/ in the order of their sections; each is linked from its sections
+FOLDERS = ("scaling", "parity", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "noise",
+           "noise_probe", "transfer", "reliability")
+FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
+LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
+ENGINES = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}
+HEAD = f"""<!-- written by `{PROG}` from results/*/figures.json and the runs beside them: edit those -->
+# Results
+
+Written by `{PROG}` from each experiment's figures.json and run folders under results/. Every
+section names what it measures, the command, the machine, and the date and commit of its figures. Success is the
+evaluation success rate (deterministic policy, success at the episode's last step), the mean over seeds; "final" is
+the mean ± std over seeds of each seed's mean over its last {LAST_N} epochs; AUC is the mean of the seed-mean success
+over the epochs run. The paper's claims judged on these runs are in [results/claims.md](../results/claims.md), how
+far each verdict bears on the paper in [reproduction.md](reproduction.md)."""
+
+
+def read_lines(path: str) -> list[dict]:
+    """The JSON objects of a JSON-lines file (`experiments.bench.sweep --out`)."""
+    with open(path, encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def sweep_curve(path: str, label: str) -> report.Curve:
+    """A sweep's curve (one variant's JSON lines): each epoch's per-seed eval success."""
+    rows = read_lines(path)
+    column = [np.array([row[key] for row in rows], float) for key in ("epoch", "env_steps_per_seed",
+                                                                       "process_seconds")]
+    return report.Curve("", label, path, *column, np.array([row["eval_success_seeds"] for row in rows], float))
+
+
+def curve_of(path: str, label: str) -> report.Curve:
+    """The curve of a run folder or of a sweep's JSON lines (a path ending .jsonl)."""
+    if path.endswith(".jsonl"):
+        return sweep_curve(path, label)
+    return report.curves([report.load_run(path)], labels={path: label})[0]
+
+
+def first_epoch(epochs: np.ndarray, success: np.ndarray, threshold: float = 0.9) -> str:
+    """The first of `epochs` whose seed mean of `success` [E, S] is at least `threshold`; "—" if none is."""
+    reached = np.flatnonzero(success.mean(axis=1) >= threshold)
+    return str(int(epochs[reached[0]])) if reached.size else "—"
+
+
+def epochs_table(root: str, runs: str) -> str:
+    """Per sweep file TASK-AGENT[-N-seeds].jsonl: its physics, seeds, the mean step of `process_seconds` per epoch,
+    and compile: the first epoch's `variant_seconds` less one epoch (`grid.SECONDS`'s figures)."""
+    rows = []
+    for path in glob.glob(os.path.join(root, runs)):
+        task, agent = os.path.basename(path).removesuffix(".jsonl").split("-")[:2]
+        lines = read_lines(path)
+        epoch = (lines[-1]["process_seconds"] - lines[0]["process_seconds"]) / (len(lines) - 1)
+        rows.append((protocol.TASKS.index(task), list(AGENTS).index(agent), [
+            task, agent, str(len(lines[0]["eval_success_seeds"])), ENGINES[lines[0]["engine"]], f"{epoch:.2f}",
+            f"{lines[0]['variant_seconds'] - epoch:.1f}"]))
+    head = ["task", "agent", "seeds", "physics", "epoch (s)", "compile (s)"]
+    return report.markdown_table(head, [cells for *_, cells in sorted(rows)])
+
+
+def curves_table(root: str, runs: str) -> str:
+    """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column, "final / AUC"."""
+    tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(root, runs, t))]
+    agents = [a for a in AGENTS if any(os.path.isdir(os.path.join(root, runs, t, a)) for t in tasks)]
+    found = {(t, a): curve_of(os.path.join(root, runs, t, a), a) for t in tasks for a in agents}
+    head = ["agent", *(f"{t} ({len(found[t, agents[0]].epoch)} epochs)" for t in tasks)]
+    rows = [[a, *(f"{report.final_cell(found[t, a], LAST_N)} / {report.normalized_auc(found[t, a]):.3f}"
+                  for t in tasks)] for a in agents]
+    return report.markdown_table(head, rows)
+
+
+def pilots_table(root: str, runs: Sequence[Sequence[str]]) -> str:
+    """Per [label, path] (a run folder or a sweep): seeds, epochs, the first epoch of seed mean ≥ 0.9, final."""
+    rows = []
+    for label, path in runs:
+        curve = curve_of(os.path.join(root, path), label)
+        rows.append([label, str(curve.n_seeds), str(len(curve.epoch)), first_epoch(curve.epoch, curve.success),
+                     report.final_cell(curve, LAST_N)])
+    return report.markdown_table(["task, agent", "seeds", "epochs", "first epoch ≥ 0.9", "final"], rows)
+
+
+def lambda_table(root: str, runs: str) -> str:
+    """The table of the λ sweep's table.md (`experiments.paper.lambda_sweep --report`) and its verdict line."""
+    with open(os.path.join(root, runs), encoding="utf-8") as f:
+        lines = f.read().splitlines()
+    verdict = [line for line in lines if line.startswith("Largest")]
+    return "\n\n".join(["\n".join(line for line in lines if line.startswith("|")), *verdict])
+
+
+def last_mean(run_dir: str, column: str) -> str:
+    """The mean of metrics.csv's `column` over the last `LAST_N` rows; "not recorded" where the run predates it."""
+    metrics = os.path.join(run_dir, "metrics.csv")
+    header, rows, _ = runfiles.read_csv(metrics)
+    if column not in header:
+        return "not recorded"
+    return f"{np.mean([runfiles.number(metrics, row, column) for row in rows[-LAST_N:]]):.3f}"
+
+
+def lift_table(root: str, runs: Sequence[Sequence[str]]) -> str:
+    """Per [protocol, path] of a nicol_lift run: air-goal success per seed and table-goal success (each over the
+    last epochs), the seeds that lift (`protocol.seeds_that_lift`), the first epoch of seed-mean air success ≥ 0.9."""
+    rows = []
+    for label, path in runs:
+        run = report.load_run(os.path.join(root, path))
+        air = run["success_air"]
+        rows.append([label, run["agent"], str(run["seeds"]), str(len(run["epoch"])),
+                     ", ".join(f"{v:.3f}" for v in air[-LAST_N:].mean(axis=0)),
+                     last_mean(run["dir"], "eval_success_table"),
+                     f"{protocol.seeds_that_lift(air, LAST_N)} of {run['seeds']}", first_epoch(run["epoch"], air)])
+    head = ["protocol", "agent", "seeds", "epochs", f"air goals, last {LAST_N} epochs, per seed",
+            "table goals", "seeds that lift", "first epoch, air ≥ 0.9"]
+    return report.markdown_table(head, rows)
+
+
+def parity_table(root: str, runs: Sequence[Sequence[str]]) -> str:
+    """Per [task and agent, convs, sweep path]: each seed's AUC over the epochs every sweep of its task reached."""
+    curves = [(task, convs, sweep_curve(os.path.join(root, path), convs)) for task, convs, path in runs]
+    common = {task: min(len(c.epoch) for t, _, c in curves if t == task) for task, _, _ in curves}
+    rows = [[task, convs, str(common[task]), ", ".join(f"{v:.3f}" for v in c.success[:common[task]].mean(axis=0)),
+             f"{c.success[:common[task]].mean():.3f}"] for task, convs, c in curves]
+    return report.markdown_table(["task, agent", "convs", "epochs", "AUC per seed", "mean"], rows)
+
+
+def noise_table(root: str, runs: str) -> str:
+    """Table II: per κ, each agent's final success over the paper's last N epochs beside the paper's."""
+    found, _ = protocol.load_noise_curves(os.path.join(root, runs))
+    agents = [a for a in protocol.NOISE_AGENTS if any(agent == a for _, agent in found)]
+    rows = []
+    for k in protocol.KAPPAS:
+        cells = [f"{k:.0%}", str(protocol.LAST_N[k])]
+        for a in agents:
+            mean, std, _ = report.final_success(found[k, a], protocol.LAST_N[k])
+            cells += [f"{mean:.3f} ± {std:.3f}", "{:.3f} ± {:.3f}".format(*protocol.PAPER[k][a])]
+        rows.append(cells)
+    return report.markdown_table(["κ", "last N epochs", *(f"{a}{whose}" for a in agents for whose in ("", ", paper"))],
+                                 rows)
+
+
+def transfer_table(root: str, runs: str) -> str:
+    """The transfer and scratch arms: final, AUC, env steps to each threshold; then transfer − scratch in AUC."""
+    arms = [curve_of(os.path.join(root, runs, arm), arm) for arm in ("transfer", "scratch")]
+    head = ["arm", "seeds", "epochs", "final", "AUC", *(f"env steps per seed to {t:g}" for t in protocol.THRESHOLDS)]
+    rows = []
+    for c in arms:
+        hits = [report.time_to_threshold(c, t) for t in protocol.THRESHOLDS]
+        rows.append([c.label, str(c.n_seeds), str(len(c.epoch)), report.final_cell(c, LAST_N),
+                     f"{report.normalized_auc(c):.3f}",
+                     *("not reached" if h is None else f"{h.env_steps:,.0f} (epoch {h.epoch})" for h in hits)])
+    auc = [c.success.mean(axis=0) for c in arms]
+    diff, low, high = stats.bootstrap_difference([auc[0]], [auc[1]])
+    welch = stats.interval_text(*stats.welch_interval(*auc)[1:])
+    rows.append(["transfer − scratch, per seed: 95 % bootstrap; Welch t", "", "", "",
+                 f"{diff:+.3f} {stats.interval_text(low, high)}; {welch}", *([""] * len(protocol.THRESHOLDS))])
+    return report.markdown_table(head, rows)
+
+
+def resumed_table(root: str, runs: str) -> str:
+    """Every run folder under root/runs that resumed with an empty replay buffer or lacks rows in metrics.csv."""
+    rows = []
+    for config in sorted(glob.glob(os.path.join(root, runs, "**", "config.json"), recursive=True)):
+        run = report.load_run(os.path.dirname(config))
+        fresh, absent = run["config"].get("fresh_buffer_epochs") or [], report.absent_epochs(run["epoch"])
+        if fresh or absent:
+            rows.append([os.path.relpath(run["dir"], root), ", ".join(map(str, fresh)) or "—",
+                         report.epoch_spans(absent) or "—"])
+    return report.markdown_table(["run", "resumed with an empty replay buffer after epochs",
+                                  "epochs without a row in metrics.csv"], rows)
+
+
+TABLES: dict[str, Callable[[str, object], str]] = {
+    "epochs": epochs_table, "curves": curves_table, "pilots": pilots_table, "lambda": lambda_table,
+    "lift": lift_table, "parity": parity_table, "noise": noise_table, "transfer": transfer_table,
+    "resumed": resumed_table,
+}
+
+
+def load_sections(root: str, folders: Sequence[str]) -> list[dict]:
+    """The sections of each folder's figures.json, each with its "folder"; ValueError naming a bad one."""
+    sections = []
+    for folder in folders:
+        path = os.path.join(root, folder, "figures.json")
+        with open(path, encoding="utf-8") as f:
+            found = json.load(f)
+        for i, section in enumerate(found):
+            missing = [field for field in FIELDS if field not in section]
+            if missing or section["part"] not in PARTS:
+                raise ValueError(f"{path}: section {i + 1} lacks {', '.join(missing)}" if missing
+                                 else f"{path}: section {i + 1}: part {section['part']!r} is none of {PARTS}")
+            sections.append({**section, "folder": folder})
+    return sections
+
+
+def table_text(section: dict, root: str) -> str:
+    """A section's table: given, or computed by its `TABLES` function from its runs."""
+    table = section["table"]
+    if isinstance(table, dict):
+        return report.markdown_table(table["head"], table["rows"])
+    if table not in TABLES:
+        raise ValueError(f"{section['folder']}/figures.json: table {table!r} is none of {', '.join(TABLES)}")
+    return TABLES[table](root, section["runs"])
+
+
+def section_text(section: dict, root: str) -> str:
+    """A section: its title, what it measures, then its command, machine and record beside its table, its note
+    and its figure."""
+    folder = f"../results/{section['folder']}/"
+    record = (f"Command: `{section['command']}`. Machine: {section['machine']}. Recorded {section['date']} at "
+              f"commit {section['commit']}; data: [results/{section['folder']}/]({folder}).")
+    parts = [f"### {section['title']}", section["about"], record, table_text(section, root)]
+    parts += [section["note"]] if section.get("note") else []
+    parts += [f"![{section['title']}]({folder}{section['figure']})"] if section.get("figure") else []
+    return "\n\n".join(parts)
+
+
+def document(root: str, folders: Sequence[str]) -> str:
+    """docs/results.md's text from the figures of `folders` and the runs under `root` (a results/ folder)."""
+    sections = load_sections(root, folders)
+    parts = [HEAD]
+    for part in PARTS:
+        parts += [f"## {part}"] + [section_text(s, root) for s in sections if s["part"] == part]
+    return "\n\n".join(parts) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog=PROG, description="Write docs/results.md from results/*/figures.json.")
+    parser.add_argument("--check", action="store_true", help=f"write nothing; exit 1 when {DOC} is not what "
+                        "the command writes")
+    args = parser.parse_args(argv)
+    path = os.path.join(REPO, DOC)
+    try:
+        text = document(os.path.join(REPO, "results"), FOLDERS)
+        if args.check:
+            with open(path, encoding="utf-8") as f:
+                if f.read() == text:
+                    return 0
+            print(f"error: {DOC} is not what `{PROG}` writes: run it", file=sys.stderr)
+            return 1
+        with rundir.writing(path):
+            runfiles.write_atomic(path, text)
+    except (OSError, ValueError, KeyError, rundir.DiskError) as err:  # report.RunError is a ValueError
+        return cli.exit_code(err)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(cli.command(main))

@@ -1,0 +1,73 @@
+"""docs/results.md is what `python -m experiments.paper.results_docs` writes from results/*/figures.json and the runs
+beside them; every folder of results/ has its sections; and the command renders, checks and refuses as it says."""
+
+import json
+import os
+
+import pytest
+
+from experiments.paper import results_docs
+from tests.helpers import REPO
+
+RESULTS = os.path.join(REPO, "results")
+SECTION = {"part": "Performance", "title": "An epoch", "about": "What it measures.", "command": "python -m x",
+           "machine": "one machine", "date": "2026-01-01", "commit": "abc1234",
+           "table": {"head": ["what", "s"], "rows": [["an epoch", "1.0"]]}, "note": "What it says."}
+
+
+def test_docs_results_is_what_the_command_writes():
+    with open(os.path.join(REPO, results_docs.DOC), encoding="utf-8") as f:
+        committed = f.read()
+    assert committed == results_docs.document(RESULTS, results_docs.FOLDERS), \
+        f"{results_docs.DOC} is not what `{results_docs.PROG}` writes: run it"
+    assert committed.startswith(f"<!-- written by `{results_docs.PROG}`")
+    assert len(committed.splitlines()) <= 400
+
+
+def test_every_folder_of_results_has_its_sections_and_a_link():
+    folders = {name for name in os.listdir(RESULTS) if os.path.isdir(os.path.join(RESULTS, name))}
+    assert folders == set(results_docs.FOLDERS)
+    with open(os.path.join(REPO, results_docs.DOC), encoding="utf-8") as f:
+        text = f.read()
+    assert [folder for folder in sorted(folders) if f"](../results/{folder}/)" not in text] == []
+
+
+def write_figures(root, sections, folder="x"):
+    os.makedirs(root / folder)
+    (root / folder / "figures.json").write_text(json.dumps(sections))
+
+
+def test_a_section_gives_its_record_beside_its_table_then_its_note_and_figure(tmp_path):
+    write_figures(tmp_path, [{**SECTION, "figure": "curves.png"}])
+    text = results_docs.document(str(tmp_path), ["x"])
+    assert ("### An epoch\n\nWhat it measures.\n\nCommand: `python -m x`. Machine: one machine. Recorded 2026-01-01 "
+            "at commit abc1234; data: [results/x/](../results/x/).\n\n| what | s |\n| --- | --- |\n| an epoch | 1.0 |"
+            "\n\nWhat it says.\n\n![An epoch](../results/x/curves.png)\n") in text
+    assert text.index("## Performance") < text.index("### An epoch") < text.index("## Learning")
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"commit": None}, "section 1 lacks commit"),
+    ({"part": "Speed"}, "part 'Speed' is none of"),
+    ({"table": "speed"}, "table 'speed' is none of"),
+])
+def test_a_bad_section_is_refused_naming_its_file(tmp_path, change, message):
+    section = {k: v for k, v in {**SECTION, **change}.items() if v is not None}
+    write_figures(tmp_path, [section])
+    with pytest.raises(ValueError, match=message):
+        results_docs.document(str(tmp_path), ["x"])
+
+
+def test_check_fails_until_the_command_has_written_the_file(tmp_path, monkeypatch, capsys):
+    write_figures(tmp_path / "results", [SECTION])
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "results.md").write_text("# Results\n\nan edit by hand\n")
+    monkeypatch.setattr(results_docs, "REPO", str(tmp_path))
+    monkeypatch.setattr(results_docs, "FOLDERS", ("x",))
+    assert results_docs.main(["--check"]) == 1
+    assert "is not what `python -m experiments.paper.results_docs` writes" in capsys.readouterr().err
+    assert results_docs.main([]) == 0
+    assert results_docs.main(["--check"]) == 0
+    (tmp_path / "results" / "x" / "figures.json").write_text("[{")
+    assert results_docs.main([]) == 2
+    assert capsys.readouterr().err.startswith("error: ")
