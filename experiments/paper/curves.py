@@ -2,7 +2,7 @@
 every agent of a task.
 
     python -m experiments.paper.curves [--tasks a,b] [--agents x,y] [--seeds N] [--seed 0] [--epochs N]
-        [--out results/curves] [--held-starts] [--dry-run | --report] [--last-n 10]
+        [--out results/curves] [--dry-run | --report] [--last-n 10]
         [any learner or network option of experiments.run]
 
 The grid is the tasks planar_reach, ur5_reach, nicol_slide and nicol_lift × the agents of
