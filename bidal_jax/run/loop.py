@@ -1,7 +1,7 @@
 """The training loop that every command line and experiment calls.
 
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
-        row = loop.train(prepared.env, prepared.config, programs=prepared.programs)
+        row = loop.train(prepared.env, prepared.config, prepared.programs)
 
 `train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
 (metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
-import importlib.util
 import json
 import os
 import sys
@@ -33,9 +32,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from bidal_jax.config import Config, ConfigError
+from bidal_jax.config import Config
 from bidal_jax.run import checkpoint, exported, memory, multihost, rundir, runfiles
-from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
+from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding, use_physics, warp_problem
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
 from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
 from bidal_jax.train import make_train
@@ -67,50 +66,14 @@ class Programs(NamedTuple):
 
 
 def make_programs(env, config: Config) -> Programs:
-    """The programs of the run `config` on `env`: laid out on devices, traced and compiled only when called."""
+    """The programs of the run `config` on `env`: laid out on devices (`devices.device_layout`), with `env` stepping
+    on the physics engine the run asks for, sized for the worlds of one device (`devices.use_physics`: before
+    anything is traced); traced and compiled only when called."""
     run = config.run
     devices, shards = device_layout(run.seeds, config.train, run.env_shards)
+    use_physics(env, config, devices, shards)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return Programs(init, epoch, seed_sharding(devices, shards), devices, shards, run.seed, run.seeds)
-
-
-def physics_engine(choice: str, devices: list) -> str:
-    """The engine of a run of `RunConfig.physics` `choice` laid out on `devices`: "warp" (MuJoCo Warp) needs NVIDIA
-    GPUs and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. On several devices each
-    steps its own envs' Warp physics (`devices.make_seeded`). ConfigError for warp where it cannot run."""
-    if choice == "jax":
-        return "jax"
-    problem = warp_problem(devices)
-    if problem is None:
-        return "warp"
-    if choice == "auto":
-        return "jax"
-    raise ConfigError(f"--physics warp needs NVIDIA GPUs and warp-lang: {problem}; allowed here: jax, auto")
-
-
-def warp_problem(devices: list) -> str | None:
-    """Why MuJoCo Warp cannot step a run laid out on `devices`, or None where it can."""
-    platforms = sorted({d.platform for d in devices})
-    if platforms != ["gpu"]:
-        return f"this run lays out {len(devices)} {'/'.join(platforms)} device(s)"
-    if importlib.util.find_spec("warp") is None:
-        return "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
-    return None
-
-
-def physics_worlds(seeds: int, train, devices: int = 1, shards: int = 1) -> int:
-    """The most envs one device steps at once in a program of `seeds` seeds and the `TrainConfig` `train` laid out
-    on `devices` devices with `shards` env shards (`devices.device_layout`), the worlds Warp's contact buffer is
-    sized for: each seed device's seeds × the wider of its shard of the training and evaluation envs."""
-    return seeds // (devices // shards) * (max(train.num_envs, train.eval_envs) // shards)
-
-
-def use_physics(env, config: Config) -> None:
-    """Step `env` on the engine of `config.run.physics` (`physics_engine`) for the run's worlds (`physics_worlds`)."""
-    run = config.run
-    devices, shards = device_layout(run.seeds, config.train, run.env_shards)
-    env.use_backend(physics_engine(run.physics, devices),
-                    worlds=physics_worlds(run.seeds, config.train, len(devices), shards))
 
 
 def restore_state(env, config: Config, step: int | None = None):
@@ -131,8 +94,8 @@ def _restore(run_dir: str, programs: Programs, step: int | None = None, fresh_bu
 
 
 def build(
-    env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None,
-    fresh_buffer: bool = False, built: Programs | None = None,
+    env, config: Config, programs: Programs, resume: bool, log: Callable = _log, initialize: Callable | None = None,
+    fresh_buffer: bool = False,
 ):
     """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's
     (with `fresh_buffer`, all of it but the replay buffer, which starts empty); writes nothing.
@@ -140,9 +103,9 @@ def build(
     `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
     from another run for transfer); a resumed run continues its checkpoint as it is.
     Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
-    `built`: the run's programs (`preflight.prepare` built them), else built here.
+    `programs`: the run's, built once (`preflight.prepare`, `make_programs`); nothing is built here.
     """
-    run, programs = config.run, built or make_programs(env, config)
+    run = config.run
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
     engine = ", physics on MuJoCo Warp" if env.backend == "warp" else ""
@@ -211,30 +174,6 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
     return compiled
 
 
-def train(
-    env, config: Config, *, quiet: bool = False, resume: bool = False, initialize: Callable | None = None,
-    fresh_buffer: bool = False, programs: Programs | None = None,
-) -> dict[str, float]:
-    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`; with
-    `fresh_buffer` too, an empty replay buffer instead of the checkpoint's); returns
-    the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
-    edits a new run's initial state (see `build`); `programs` are the run's (`preflight.prepare` built them;
-    else built here).
-
-    Runs inside the run directory's lock (`preflight.prepare`'s, which holds it until the run ends).
-    Raises CheckpointError (before writing anything) when the checkpoint cannot be
-    restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
-    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
-    checkpoint is deleted: the last good one is what a resumed run continues).
-
-    With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
-    process's devices, the checkpoints are written by all, config.json, the metrics and the progress
-    bar by process 0 only; a signal to any process stops all after the same epoch.
-    """
-    begun = time.time()  # the clock of wall_time_with_compile
-    return _train(env, config, quiet, resume, initialize, begun, fresh_buffer, programs)
-
-
 def _recorded(run_dir: str, key: str, resume: bool) -> list:
     """The list `key` of a resumed run's config.json (empty for a new run, or a missing or damaged copy:
     what came before is unknown)."""
@@ -284,19 +223,35 @@ def _finish(pending: checkpoint.Pending | None, saved: int | None, ckpt_dir: str
     return pending.step
 
 
-def _train(
-    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float, fresh_buffer: bool,
-    programs: Programs | None,
+def train(
+    env, config: Config, programs: Programs, *, quiet: bool = False, resume: bool = False,
+    initialize: Callable | None = None, fresh_buffer: bool = False,
 ) -> dict[str, float]:
-    """`train`'s loop; `begun`: when `train` was called."""
+    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`; with
+    `fresh_buffer` too, an empty replay buffer instead of the checkpoint's); returns
+    the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
+    edits a new run's initial state (see `build`); `programs` are the run's, built once (`preflight.prepare`):
+    the loop trains what it is given.
+
+    Runs inside the run directory's lock (`preflight.prepare`'s, which holds it until the run ends).
+    Raises CheckpointError (before writing anything) when the checkpoint cannot be
+    restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
+    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
+    checkpoint is deleted: the last good one is what a resumed run continues).
+
+    With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
+    process's devices, the checkpoints are written by all, config.json, the metrics and the progress
+    bar by process 0 only; a signal to any process stops all after the same epoch.
+    """
+    begun = time.time()  # the clock of wall_time_with_compile
     run = config.run
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
         resumed = checkpoint.latest_step(ckpt_dir) if resume else None
         with memory.out_of_memory("compiling and starting the training program", lambda: _last_good(resumed, ckpt_dir)):
-            epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize,
-                                                      fresh_buffer=fresh_buffer, built=programs)
+            epoch, state, start_epoch, shards = build(env, config, programs, resume, initialize=initialize,
+                                                      fresh_buffer=fresh_buffer)
         cfg = {
             **config.to_dict(),
             "physics": history_record(run.run_dir, "physics", env.physics_id, resume),
