@@ -187,15 +187,15 @@ def make_train(env, config: Config, env_shards: int = 1):
     """
     train, agent, spec = config.train, config.agent, env.observation_spec
     steps, future_p = agent.family.update_order, her_probability(train.her_k)
+    shards = Shards(env_shards)
+    learner = make_learner(env, config, shards)
+    networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
     noise_map = noise.noise_map(spec, noise.parse_segments(train.noise_segments), train.noise_variant)
     noisy = noise_map.indices
     if len(noisy) and env_shards > 1:  # σ is a quantile of the whole buffer, which no shard holds
         raise ConfigError(f"--noise-segments {train.noise_segments!r} runs with 1 env shard only "
                           f"(here {env_shards}; `device_layout` gives 1)")
-    shards = Shards(env_shards)
-    learner = make_learner(env, config, shards)
-    networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
     # the evaluation runs in chunks of the cycles' width inside the cycles' scan, through the same traced env
     # step, where they roll out exactly n_eval episodes; otherwise (e.g. 128 of 2,048 envs) as a rollout of its

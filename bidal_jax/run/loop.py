@@ -272,7 +272,7 @@ def train(
         # (a run resumed from metrics written before this column: its time so far without compiling)
         compiled_before = row.get("wall_time_with_compile", wall_before)
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
-        size = rundir.megabytes(rundir.with_margin(rundir.tree_bytes(state)))
+        size = rundir.megabytes(rundir.with_margin(memory.tree_bytes(state)))
         start = time.time()
         pending = None  # the checkpoint being written while the next epochs train (`checkpoint.save_in_background`)
         bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,

@@ -1,19 +1,21 @@
 """Preparing a run: every check before anything is compiled or written, and the run directory's lock.
 
     with prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
-        row = loop.train(prepared.env, prepared.config, programs=prepared.programs)
+        row = loop.train(prepared.env, prepared.config, prepared.programs)
 
-`prepare` checks the config (`validate.check`), the run directory (a new run never mixes into
-an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
-config; it builds the env and the run's programs once (`loop.make_programs`), checks what the env
-must offer, a resumed run's files, whether the training state (`jax.eval_shape` of those programs) fits
+`prepare` is one pass, in this order: the run directory not in use (`rundir.check_not_in_use`); the config,
+resolved from the values given (`resolve`) or, resuming, the checkpoint's (`resumed_config`: refused where it
+differs from config.json or from the options given; the run's files, `runfiles.check_run_files`, and the
+checkpoint's replay buffer), checked once (`validate.check`); a new run's directory (never mixed into an existing
+one; `overwrite` deletes only what a run writes, `rundir.check_run_dir`); the env, and what it must offer
+(`validate.check_env_support`); the run's programs, built once (`loop.make_programs`: its devices and physics
+engine too), from whose training state (`jax.eval_shape`) a transfer's source run is checked, and whether it fits
 in the device's memory (`memory.check_state`; the compiled epoch is checked once compiled, `memory.check_program`)
-and one checkpoint of it on the disk and, for a transfer, the source run; then it
-locks the run directory (`rundir.hold`, process 0), deletes it with `overwrite`, and holds the lock until
-the `with` block ends: a second run, resumed run or experiment on it is refused. Errors are one line
-each: `ConfigError` (`rundir.RunDirInUse` and `runfiles.RunFileError`, a resumed run's damaged file,
-among them), `CheckpointError`, `rundir.DiskError` (no space for one checkpoint, or a resumed run's file
-that it cannot write).
+and one checkpoint of it on the disk (`rundir.check_space`). Then it locks the run directory (`rundir.lock`,
+process 0), empties it with `overwrite`, and holds the lock until the `with` block ends: a second run, resumed
+run or experiment on it is refused. Errors are one line each: `ConfigError` (`rundir.RunDirInUse` and
+`runfiles.RunFileError`, a resumed run's damaged file, among them), `CheckpointError`, `rundir.DiskError` (no
+space for one checkpoint, or a resumed run's file that it cannot write).
 """
 
 from __future__ import annotations
@@ -41,23 +43,19 @@ class Prepared(NamedTuple):
     programs: loop.Programs
 
 
-def _config_differences(saved: dict, other: dict) -> list[tuple[str, str, object, object]]:
-    """(group, field, saved value, other value) for each field that differs, but for those that may change."""
-    return [
-        (group, field, value, other.get(group, {}).get(field))
-        for group, values in saved.items()
-        for field, value in values.items()
-        if field not in RESUME_MAY_CHANGE and other.get(group, {}).get(field) != value
-    ]
-
-
 def _check_config_json(run_dir: str, saved: dict, where: str) -> None:
     """Refuse a checkpoint whose config differs from the run's config.json (one from another run)."""
     try:
         recorded = runfiles.read_json(os.path.join(run_dir, "config.json"))
     except runfiles.RunFileError:
         return  # a missing or damaged copy is rewritten from the checkpoint's config
-    differences = _config_differences(saved, recorded)
+    # (group, field, saved value, recorded value) of each field that differs, but for those that may change
+    differences = [
+        (group, field, value, recorded.get(group, {}).get(field))
+        for group, values in saved.items()
+        for field, value in values.items()
+        if field not in RESUME_MAY_CHANGE and recorded.get(group, {}).get(field) != value
+    ]
     if differences:
         group, field = differences[0][:2]
         what = {"env": "another env", "agent": "another agent"}.get(field) or (
@@ -102,28 +100,14 @@ def resumed_config(run_dir: str, given: dict[str, Any]) -> Config:
 
 
 def _resumed(given: dict[str, Any], fresh_buffer: bool) -> Config:
-    """The config of the run that `given["run_dir"]` holds (`resumed_config`), once its files (`check_run_files`)
-    and, unless `fresh_buffer` starts an empty one, its checkpoint's replay buffer (a CheckpointError saying so
-    when the item is missing) passed."""
+    """The config of the run that `given["run_dir"]` holds (`resumed_config`), once its files
+    (`runfiles.check_run_files`) and, unless `fresh_buffer` starts an empty one, its checkpoint's replay
+    buffer (a CheckpointError saying so when the item is missing) passed."""
     config = resumed_config(given["run_dir"], given)
-    check_run_files(config.run.run_dir)
+    runfiles.check_run_files(config.run.run_dir)
     if not fresh_buffer:
         read_metadata(os.path.join(config.run.run_dir, "checkpoints"), names=("buffer",))
     return config
-
-
-def check_run_files(run_dir: str) -> None:
-    """A resumed run's files, before anything is compiled: its metrics.csv must read as CSV (`runfiles.read_csv`;
-    RunFileError, exit 2, naming a damaged one or a folder in its place), config.json must not be a folder, and
-    the run must be able to append to metrics.csv and replace config.json (DiskError, exit 4, naming the path)."""
-    metrics_csv, config_json = os.path.join(run_dir, "metrics.csv"), os.path.join(run_dir, "config.json")
-    if os.path.lexists(metrics_csv):
-        runfiles.read_csv(metrics_csv)
-    if os.path.isdir(config_json):
-        raise runfiles.RunFileError(f"{config_json}: is a directory, not a file")
-    for path in (run_dir, *(p for p in (metrics_csv,) if os.path.lexists(p))):
-        if not os.access(path, os.W_OK):
-            raise rundir.DiskError(f"permission denied: {path} cannot be written; fix its permissions and resume")
 
 
 @contextlib.contextmanager
@@ -156,23 +140,23 @@ def prepare(
     # the config: the values given, or the checkpoint's that a resumed run continues; checked once
     config = _resumed(given, fresh_buffer) if resume else resolve(given)
     validate.check(config, env_names=tuple(env_names))
-    if not resume and not config.run.run_dir:
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        run_dir = os.path.join("runs", f"{config.run.env}-{config.run.agent}-{stamp}")
-        config = dataclasses.replace(config, run=dataclasses.replace(config.run, run_dir=run_dir))
+    if not resume:  # a new run: into a directory of its own (by default one named after it and the time)
+        if not config.run.run_dir:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            run_dir = os.path.join("runs", f"{config.run.env}-{config.run.agent}-{stamp}")
+            config = dataclasses.replace(config, run=dataclasses.replace(config.run, run_dir=run_dir))
+        rundir.check_run_dir(config.run.run_dir, overwrite)
     run = config.run
-    if not resume:
-        rundir.check_run_dir(run.run_dir, overwrite)
     # the env and the programs, built once: what the env must offer and whether the state fits (traces init,
     # compiles nothing)
     env = make_env(run.env, render=config.agent.uses_image) if env is None else env
     validate.check_env_support(config.train, env)
     programs = loop.make_programs(env, config)
     state = programs.abstract_state()
-    whole = rundir.tree_bytes(state)  # every seed's: what a checkpoint holds
-    memory.check_state(whole // len(programs.devices), memory.device_memory(), run.seeds)
-    rundir.check_space(run.run_dir, whole)
     if run.init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(config, state, env.observation_spec.proprio_segments, make_env)
+    whole = memory.tree_bytes(state)  # every seed's: what a checkpoint holds
+    memory.check_state(whole // len(programs.devices), memory.device_memory(), run.seeds)
+    rundir.check_space(run.run_dir, whole)
     with rundir.lock(run.run_dir, resume, overwrite):
         yield Prepared(config, env, programs)

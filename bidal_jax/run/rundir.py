@@ -36,10 +36,7 @@ import re
 import shutil
 import socket
 import sys
-from typing import Any, Callable, Iterator
-
-import jax
-import numpy as np
+from typing import Callable, Iterator
 
 from bidal_jax.config import ConfigError
 from bidal_jax.run import multihost
@@ -230,11 +227,6 @@ def delete_run_dir(run_dir: str) -> None:
 
 
 # ----- disk space and disk errors ----------------------------------------------------------------
-
-
-def tree_bytes(tree: Any) -> int:
-    """Bytes of a pytree's arrays (or shape/dtype structs), whole: what a checkpoint of it writes, uncompressed."""
-    return int(sum(np.prod(x.shape, dtype=np.int64) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree)))
 
 
 def with_margin(nbytes: int) -> int:
