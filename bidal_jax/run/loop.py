@@ -3,13 +3,14 @@
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
         row = loop.train(prepared.env, prepared.config, prepared.programs)
 
-`train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
-(metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
-`checkpoint`; each written while the next epochs train, but the run's last, which is on disk before `train`
-returns or raises), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
-non-finite metric or parameter stops the run without saving it; `guard`), inside the run
-directory's lock that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the
-replay buffer, which starts empty; config.json's "fresh_buffer_epochs" records after which epochs.
+`train` runs the jitted epoch of the programs it is given (`train.make_train`, laid out by `devices`, built once by
+`make_programs`) in Python, calling after each epoch its callbacks, as Brax's `progress_fn`: the metrics writer
+(`metrics_writer`: metrics.csv and TensorBoard, `metrics`), then the checkpoints (`Checkpoints`: Orbax, the latest
+two and the best, `checkpoint`; each written while the next epochs train, but the run's last, which is on disk
+before `train` returns or raises). Around them: SIGINT/SIGTERM (save after the epoch in flight) and the divergence
+guard (a non-finite metric or parameter stops the run without saving it; `guard`), inside the run directory's lock
+that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the replay buffer, which starts
+empty; config.json's "fresh_buffer_epochs" records after which epochs.
 Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
 `ConfigError` (an epoch program larger than the device's memory, `memory.check_program`: refused before it
 trains), `Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk),
@@ -212,15 +213,63 @@ def _last_good(saved: int | None, ckpt_dir: str) -> str:
     return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
 
 
-def _finish(pending: checkpoint.Pending | None, saved: int | None, ckpt_dir: str, size: str) -> int | None:
-    """Wait for the checkpoint being written (`pending`), if any: the epoch of the last checkpoint on disk then
-    (`saved` before it); its failure is raised as `rundir.disk_errors` words it."""
-    if pending is None:
-        return saved
-    with rundir.disk_errors(f"saving checkpoint {pending.step} in {ckpt_dir} (needs about {size})",
-                            _last_good(saved, ckpt_dir)):
-        pending.wait()
-    return pending.step
+class Checkpoints:
+    """The run's checkpoints, a callback of the loop: `checkpoints(e, state, row, last)` after epoch `e` saves one every
+    `checkpoint_every` epochs, written while the next epochs train (`checkpoint.save_in_background`), and the run's
+    `last` epoch on disk before the loop ends. `saved`: the epoch of the last checkpoint on disk, which the error lines
+    name (`last_good`); `size`: what one needs on the disk, as the disk errors say it."""
+
+    def __init__(self, ckpt_dir: str, cfg: dict, shards: int, every: int, saved: int | None, size: str):
+        self.dir, self.cfg, self.shards, self.every, self.saved, self.size = ckpt_dir, cfg, shards, every, saved, size
+        self.pending: checkpoint.Pending | None = None  # the checkpoint being written while the next epochs train
+        self.manager = checkpoint.manager(ckpt_dir)
+
+    def last_good(self) -> str:
+        return _last_good(self.saved, self.dir)
+
+    def finish(self) -> None:
+        """Wait for the checkpoint being written, if any: then it is the last on disk; its failure is raised as
+        `rundir.disk_errors` words it."""
+        if self.pending is None:
+            return
+        with rundir.disk_errors(f"saving checkpoint {self.pending.step} in {self.dir} (needs about {self.size})",
+                                self.last_good()):
+            self.pending.wait()
+        self.saved, self.pending = self.pending.step, None
+
+    def __call__(self, e: int, state: Any, row: dict[str, float], last: bool) -> None:
+        if e % self.every and not last:
+            return
+        self.finish()
+        with rundir.disk_errors(f"saving checkpoint {e} in {self.dir} (needs about {self.size})", self.last_good()):
+            if last:  # the run ends here: on disk before it does
+                checkpoint.save(self.manager, e, state, self.cfg, row["eval_success"], self.shards)
+                self.saved = e
+            else:
+                self.pending = checkpoint.save_in_background(self.manager, e, state, self.cfg, row["eval_success"],
+                                                             self.shards)
+
+    def abandon(self) -> None:
+        """On an error that ends the loop: the checkpoint being written is finished first (then it is the last good
+        one); its own errors never mask that one."""
+        if self.pending is not None:
+            with contextlib.suppress(Exception):
+                self.pending.wait()
+                self.saved = self.pending.step
+
+    def close(self) -> None:
+        self.manager.close()
+
+
+def metrics_writer(log: MetricsLog, run_dir: str, checkpoints: Checkpoints) -> Callable[[int, dict], None]:
+    """The loop's progress callback: `write(e, row)` adds epoch `e`'s row to metrics.csv and TensorBoard (`log`); a
+    failed write is one `DiskError` line naming the last good checkpoint."""
+
+    def write(e: int, row: dict[str, float]) -> None:
+        with rundir.disk_errors(f"writing the metrics of epoch {e} in {run_dir}", checkpoints.last_good()):
+            log.write(row)
+
+    return write
 
 
 def train(
@@ -260,21 +309,23 @@ def train(
             "fresh_buffer_epochs": fresh_buffer_record(run.run_dir, start_epoch, resume, fresh_buffer),
         }
         saved = start_epoch if resume else None
+        size = rundir.megabytes(rundir.with_margin(memory.tree_bytes(state)))
         with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             if main:
                 os.makedirs(run.run_dir, exist_ok=True)
                 write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
             log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
-            mngr = checkpoint.manager(ckpt_dir)
+            checkpoints = Checkpoints(ckpt_dir, cfg, shards, run.checkpoint_every, saved, size)
+        # the loop's callbacks after each epoch: the metrics writer with its row, then (unless the run diverged) the
+        # checkpoints with its state
+        progress = metrics_writer(log, run.run_dir, checkpoints)
 
         row = log.last_row
         wall_before = row.get("wall_time", 0.0)
         # (a run resumed from metrics written before this column: its time so far without compiling)
         compiled_before = row.get("wall_time_with_compile", wall_before)
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
-        size = rundir.megabytes(rundir.with_margin(memory.tree_bytes(state)))
         start = time.time()
-        pending = None  # the checkpoint being written while the next epochs train (`checkpoint.save_in_background`)
         bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
                    unit="epoch", initial=start_epoch, total=run.epochs)
         e = start_epoch
@@ -287,46 +338,30 @@ def train(
                 row = epoch_row(e, metrics, now - t, steps_before, wall_before + now - start,
                                 compiled_before + now - begun)
                 steps_before = row["env_steps_total"]
-                with rundir.disk_errors(f"writing the metrics of epoch {e} in {run.run_dir}",
-                                        _last_good(saved, ckpt_dir)):
-                    log.write(row)
+                progress(e, row)
                 bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
-                    saved, pending = _finish(pending, saved, ckpt_dir, size), None
-                    raise Diverged(f"diverged at epoch {e}: {bad}; {_last_good(saved, ckpt_dir)}")
+                    checkpoints.finish()
+                    raise Diverged(f"diverged at epoch {e}: {bad}; {checkpoints.last_good()}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success
                 # read once: a signal arriving after this waits for the next epoch; one process's stops all
                 signum = multihost.largest(stop.signum or 0) or None
-                last = e == run.epochs or done or signum
-                if e % run.checkpoint_every == 0 or last:
-                    saved, pending = _finish(pending, saved, ckpt_dir, size), None
-                    with rundir.disk_errors(f"saving checkpoint {e} in {ckpt_dir} (needs about {size})",
-                                            _last_good(saved, ckpt_dir)):
-                        if last:  # the run ends here: on disk before it does
-                            checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
-                            saved = e
-                        else:
-                            pending = checkpoint.save_in_background(mngr, e, state, cfg, row["eval_success"], shards)
+                checkpoints(e, state, row, last=bool(e == run.epochs or done or signum))
                 if signum:
                     raise Interrupted(signum, e, run.run_dir)
                 if done:
                     break
         except BaseException as err:
-            # a checkpoint being written is finished first (then it is the last good one); these errors never mask
-            # this one
-            if pending is not None:
-                with contextlib.suppress(Exception):
-                    pending.wait()
-                    saved = pending.step
-            runfiles.close_quietly(bar.close, log.close, mngr.close)
+            checkpoints.abandon()
+            runfiles.close_quietly(bar.close, log.close, checkpoints.close)
             if memory.exhausted(err):  # the device ran out of memory: one line, the last good checkpoint kept
-                raise memory.ran_out(f"training epoch {e}", err, _last_good(saved, ckpt_dir)) from None
+                raise memory.ran_out(f"training epoch {e}", err, checkpoints.last_good()) from None
             raise
-        with rundir.disk_errors(f"closing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
+        with rundir.disk_errors(f"closing the run's files in {run.run_dir}", checkpoints.last_good()):
             bar.close()
             log.close()
-            mngr.close()
+            checkpoints.close()
     return row
 
 

@@ -126,7 +126,7 @@ def close_quietly(*closers: Callable[[], Any]) -> None:
 
 
 def check_run_files(run_dir: str) -> None:
-    """A resumed run's files, before anything is compiled: its metrics.csv must read as CSV (`runfiles.read_csv`;
+    """A resumed run's files, before anything is compiled: its metrics.csv must read as CSV (`read_csv`;
     RunFileError, exit 2, naming a damaged one or a folder in its place), config.json must not be a folder, and
     the run must be able to append to metrics.csv and replace config.json (DiskError, exit 4, naming the path)."""
     metrics_csv, config_json = os.path.join(run_dir, "metrics.csv"), os.path.join(run_dir, "config.json")
