@@ -63,7 +63,7 @@ REMOVED_CONV_IMPLS = ("taps", "native", "stacked")
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
 INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
-PHYSICS = ("jax", "warp", "auto")  # RunConfig.physics (bidal_jax/run/loop.py, physics_engine)
+PHYSICS = ("jax", "warp", "auto")  # RunConfig.physics (bidal_jax/run/devices.py, physics_engine)
 POSITIVE_INT = Rule(int, lambda v: v >= 1, "a positive integer")
 POSITIVE = Rule(float, lambda v: v > 0, "a positive number")
 NON_NEGATIVE = Rule(float, lambda v: v >= 0, "a number >= 0")

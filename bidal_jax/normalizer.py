@@ -67,3 +67,14 @@ def from_saved(fields: dict) -> NormalizerState:
 def normalize(state: NormalizerState, x: jax.Array, clip: float) -> jax.Array:
     """(x - mean) / std, then clipped to ±clip."""
     return jnp.clip((x - state.mean) / state.std, -clip, clip)
+
+
+def normalize_batch(batch: dict, proprio_norm: NormalizerState, goal_norm: NormalizerState, clip: float) -> dict:
+    """A sampled replay batch with its proprio features (now and next) normalised by `proprio_norm` and its goals
+    by `goal_norm`."""
+    return {
+        **batch,
+        "proprio": normalize(proprio_norm, batch["proprio"], clip),
+        "next_proprio": normalize(proprio_norm, batch["next_proprio"], clip),
+        "goal": normalize(goal_norm, batch["goal"], clip),
+    }

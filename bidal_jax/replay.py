@@ -52,6 +52,46 @@ def insert(state: ReplayState, batch: dict[str, jax.Array]) -> ReplayState:
     return ReplayState(episodes=episodes, position=(state.position + n) % cap, size=jnp.minimum(state.size + n, cap))
 
 
+def episode_template(env, uses_image: bool, n_noisy: int) -> dict:
+    """Zeros shaped like one replay episode of `env`: T+1 observations, T actions, its desired goal
+    (and the image, and the clean copies of `n_noisy` noised features, where the run has them)."""
+    spec, horizon = env.observation_spec, env.episode_length
+    episode = {
+        "proprio": jnp.zeros((horizon + 1, spec.proprio_size), jnp.float32),
+        "achieved_goal": jnp.zeros((horizon + 1, spec.goal_size), jnp.float32),
+        "desired_goal": jnp.zeros((spec.goal_size,), jnp.float32),
+        "action": jnp.zeros((horizon, env.action_size), jnp.float32),
+    }
+    if uses_image:
+        episode["image"] = jnp.zeros((horizon + 1, *spec.image_shape), jnp.uint8)
+    if n_noisy:
+        episode["clean"] = jnp.zeros((horizon + 1, n_noisy), jnp.float32)
+    return episode
+
+
+def _with_final(x: jax.Array, last: jax.Array) -> jax.Array:
+    """[T, N, ...] steps and the final [N, ...] as episodes [N, T+1, ...]."""
+    return jnp.swapaxes(jnp.concatenate([x, last[None]]), 0, 1)
+
+
+def to_episodes(records: tuple, final_obs: dict, last_obs: dict, noisy: jax.Array, uses_image: bool) -> dict:
+    """Replay episodes [N, ...] from a rollout's `records` (observations as the agent saw them, actions
+    and the clean noised features, each [T, N, ...]), the final true observation `final_obs` and what
+    the agent saw of it, `last_obs`."""
+    obs, actions, clean = records
+    episodes = {
+        "proprio": _with_final(obs["proprio"], last_obs["proprio"]),
+        "achieved_goal": _with_final(obs["achieved_goal"], last_obs["achieved_goal"]),
+        "desired_goal": final_obs["desired_goal"],
+        "action": jnp.swapaxes(actions, 0, 1),
+    }
+    if uses_image:
+        episodes["image"] = _with_final(obs["image"], last_obs["image"])
+    if len(noisy):
+        episodes["clean"] = _with_final(clean, final_obs["proprio"][..., noisy])
+    return episodes
+
+
 def _draw(episodes: dict, key: jax.Array, n: int, n_episodes: jax.Array | int, future_p: float):
     """n transitions (episode, step t) drawn uniformly from the first `n_episodes` episodes, and
     their goals: with probability `future_p` the achieved goal of a later step t' ∈ [t+1, T]

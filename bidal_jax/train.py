@@ -130,56 +130,6 @@ def her_probability(her_k: int) -> float:
     return 1.0 - 1.0 / (1.0 + her_k)
 
 
-def episode_template(env, uses_image: bool, n_noisy: int) -> dict:
-    """Zeros shaped like one replay episode of `env`: T+1 observations, T actions, its desired goal
-    (and the image, and the clean copies of `n_noisy` noised features, where the run has them)."""
-    spec, horizon = env.observation_spec, env.episode_length
-    episode = {
-        "proprio": jnp.zeros((horizon + 1, spec.proprio_size), jnp.float32),
-        "achieved_goal": jnp.zeros((horizon + 1, spec.goal_size), jnp.float32),
-        "desired_goal": jnp.zeros((spec.goal_size,), jnp.float32),
-        "action": jnp.zeros((horizon, env.action_size), jnp.float32),
-    }
-    if uses_image:
-        episode["image"] = jnp.zeros((horizon + 1, *spec.image_shape), jnp.uint8)
-    if n_noisy:
-        episode["clean"] = jnp.zeros((horizon + 1, n_noisy), jnp.float32)
-    return episode
-
-
-def _with_final(x: jax.Array, last: jax.Array) -> jax.Array:
-    """[T, N, ...] steps and the final [N, ...] as episodes [N, T+1, ...]."""
-    return jnp.swapaxes(jnp.concatenate([x, last[None]]), 0, 1)
-
-
-def to_episodes(records: tuple, final_obs: dict, last_obs: dict, noisy: jax.Array, uses_image: bool) -> dict:
-    """Replay episodes [N, ...] from a rollout's `records` (observations as the agent saw them, actions
-    and the clean noised features, each [T, N, ...]), the final true observation `final_obs` and what
-    the agent saw of it, `last_obs`."""
-    obs, actions, clean = records
-    episodes = {
-        "proprio": _with_final(obs["proprio"], last_obs["proprio"]),
-        "achieved_goal": _with_final(obs["achieved_goal"], last_obs["achieved_goal"]),
-        "desired_goal": final_obs["desired_goal"],
-        "action": jnp.swapaxes(actions, 0, 1),
-    }
-    if uses_image:
-        episodes["image"] = _with_final(obs["image"], last_obs["image"])
-    if len(noisy):
-        episodes["clean"] = _with_final(clean, final_obs["proprio"][..., noisy])
-    return episodes
-
-
-def normalized_batch(batch: dict, ts: TrainState, clip: float) -> dict:
-    """A sampled batch with its proprio and goals normalised by the state's normalisers."""
-    return {
-        **batch,
-        "proprio": normalizer.normalize(ts.proprio_norm, batch["proprio"], clip),
-        "next_proprio": normalizer.normalize(ts.proprio_norm, batch["next_proprio"], clip),
-        "goal": normalizer.normalize(ts.goal_norm, batch["goal"], clip),
-    }
-
-
 @dataclasses.dataclass(frozen=True)
 class Learner:
     """An agent's networks, its optimisers by update step name, and `update(ts, key) -> (ts, metrics)`: one
@@ -206,7 +156,7 @@ def make_learner(env, config: Config, shards: Shards) -> Learner:
         group, encoder, critic, f and g, then the actor), each on the parameters the earlier ones left."""
         with jax.named_scope(REPLAY_SCOPE):
             batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
-            batch = normalized_batch(batch, ts, train.clip_obs)
+            batch = normalizer.normalize_batch(batch, ts.proprio_norm, ts.goal_norm, train.clip_obs)
         params, opt_state, metrics = ts.params, {}, {}
         for step in steps:
             trained = step.trained(params)
@@ -237,15 +187,15 @@ def make_train(env, config: Config, env_shards: int = 1):
     """
     train, agent, spec = config.train, config.agent, env.observation_spec
     steps, future_p = agent.family.update_order, her_probability(train.her_k)
+    shards = Shards(env_shards)
+    learner = make_learner(env, config, shards)
+    networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
     noise_map = noise.noise_map(spec, noise.parse_segments(train.noise_segments), train.noise_variant)
     noisy = noise_map.indices
     if len(noisy) and env_shards > 1:  # σ is a quantile of the whole buffer, which no shard holds
         raise ConfigError(f"--noise-segments {train.noise_segments!r} runs with 1 env shard only "
                           f"(here {env_shards}; `device_layout` gives 1)")
-    shards = Shards(env_shards)
-    learner = make_learner(env, config, shards)
-    networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
     # the evaluation runs in chunks of the cycles' width inside the cycles' scan, through the same traced env
     # step, where they roll out exactly n_eval episodes; otherwise (e.g. 128 of 2,048 envs) as a rollout of its
@@ -277,7 +227,7 @@ def make_train(env, config: Config, env_shards: int = 1):
     def init(key: jax.Array) -> TrainState:
         key_params, key_state = jax.random.split(key)
         params = networks.init(key_params)
-        episode = episode_template(env, agent.uses_image, len(noisy))
+        episode = replay.episode_template(env, agent.uses_image, len(noisy))
         return TrainState(
             params=params,
             target_params=params,
@@ -379,7 +329,7 @@ def make_train(env, config: Config, env_shards: int = 1):
         last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
                                                                jax.random.fold_in(plan.key, 2))
         with jax.named_scope(REPLAY_SCOPE):
-            episodes = to_episodes(records, final.obs, last, noisy, agent.uses_image)
+            episodes = replay.to_episodes(records, final.obs, last, noisy, agent.uses_image)
             buffer = insert(ts.buffer, episodes, evaluating)
         ts, metrics = branch(evaluating, skip, learned, ts.replace(buffer=buffer), plan, final, episodes)
         ts = ts.replace(buffer=buffer)

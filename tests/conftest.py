@@ -12,7 +12,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax.config import resolve
-from bidal_jax.run import loop, preflight
+from bidal_jax.run import loop, preflight, rundir
 from experiments import run
 from tests.helpers import FINISHED
 
@@ -71,7 +71,7 @@ def fake_run():
 def no_nicol(monkeypatch):
     """Envs that only tell their episode length and physics (`TODAY`), and a record of the runs prepared and
     trained."""
-    calls, delete_run_dir = [], preflight.delete_run_dir
+    calls, delete_run_dir = [], rundir.delete_run_dir
     monkeypatch.setattr(envs_mjx, "make", lambda name, **kw: types.SimpleNamespace(
         episode_length=50, observation_spec=types.SimpleNamespace(proprio_segments=()), physics_id=TODAY))
 

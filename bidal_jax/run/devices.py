@@ -6,11 +6,14 @@ devices (`SEED_AXIS`); devices the seeds leave over split each seed's envs (`ENV
 the number of env shards, `make_seeded` compiles the seeds as one program over them, and
 `seed_sharding` says where a training state lives for `jax.device_put` (a restored checkpoint,
 a transferred state). With several processes the seeds span every process's devices.
+`physics_engine` is the engine those devices step an env's physics on (MuJoCo Warp on NVIDIA GPUs,
+else MJX-JAX) and `use_physics` sets it, sized for one device's worlds (`physics_worlds`).
 """
 
 from __future__ import annotations
 
 import functools
+import importlib.util
 import math
 from typing import Any, Callable, Sequence
 
@@ -20,7 +23,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from bidal_jax import replay
-from bidal_jax.config import ConfigError, TrainConfig
+from bidal_jax.config import Config, ConfigError, TrainConfig
 from bidal_jax.train import ENV_AXIS, SEED_AXIS, TrainState
 
 
@@ -137,3 +140,45 @@ def make_seeded(init: Callable, epoch: Callable, devices: Sequence[jax.Device] |
         jax.jit(sharded(over_seeds(epoch), in_specs=(specs,), out_specs=(specs, P(SEED_AXIS))), in_shardings=(state,),
                 out_shardings=(state, seeds), donate_argnums=0),
     )
+
+
+# ----- the physics engine the devices step ----------------------------------------------------------
+
+
+def physics_engine(choice: str, devices: list) -> str:
+    """The engine of a run of `RunConfig.physics` `choice` laid out on `devices`: "warp" (MuJoCo Warp) needs NVIDIA
+    GPUs and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. On several devices each
+    steps its own envs' Warp physics (`devices.make_seeded`). ConfigError for warp where it cannot run."""
+    if choice == "jax":
+        return "jax"
+    problem = warp_problem(devices)
+    if problem is None:
+        return "warp"
+    if choice == "auto":
+        return "jax"
+    raise ConfigError(f"--physics warp needs NVIDIA GPUs and warp-lang: {problem}; allowed here: jax, auto")
+
+
+def warp_problem(devices: list) -> str | None:
+    """Why MuJoCo Warp cannot step a run laid out on `devices`, or None where it can."""
+    platforms = sorted({d.platform for d in devices})
+    if platforms != ["gpu"]:
+        return f"this run lays out {len(devices)} {'/'.join(platforms)} device(s)"
+    if importlib.util.find_spec("warp") is None:
+        return "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
+    return None
+
+
+def physics_worlds(seeds: int, train, devices: int = 1, shards: int = 1) -> int:
+    """The most envs one device steps at once in a program of `seeds` seeds and the `TrainConfig` `train` laid out
+    on `devices` devices with `shards` env shards (`devices.device_layout`), the worlds Warp's contact buffer is
+    sized for: each seed device's seeds × the wider of its shard of the training and evaluation envs."""
+    return seeds // (devices // shards) * (max(train.num_envs, train.eval_envs) // shards)
+
+
+def use_physics(env, config: Config, devices: list, shards: int) -> None:
+    """Step `env` on the engine of `config.run.physics` (`physics_engine`) for the worlds of one device of the run laid
+    out on `devices` with `shards` env shards (`physics_worlds`)."""
+    run = config.run
+    env.use_backend(physics_engine(run.physics, devices),
+                    worlds=physics_worlds(run.seeds, config.train, len(devices), shards))

@@ -1,15 +1,16 @@
 """The training loop that every command line and experiment calls.
 
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
-        row = loop.train(prepared.env, prepared.config, programs=prepared.programs)
+        row = loop.train(prepared.env, prepared.config, prepared.programs)
 
-`train` runs the jitted epoch (`train.make_train`, laid out by `devices`) in Python: metrics
-(metrics.csv and TensorBoard, `metrics`), Orbax checkpoints (the latest two and the best,
-`checkpoint`; each written while the next epochs train, but the run's last, which is on disk before `train`
-returns or raises), SIGINT/SIGTERM (save after the epoch in flight) and the divergence guard (a
-non-finite metric or parameter stops the run without saving it; `guard`), inside the run
-directory's lock that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the
-replay buffer, which starts empty; config.json's "fresh_buffer_epochs" records after which epochs.
+`train` runs the jitted epoch of the programs it is given (`train.make_train`, laid out by `devices`, built once by
+`make_programs`) in Python, calling after each epoch its callbacks, as Brax's `progress_fn`: the metrics writer
+(`metrics_writer`: metrics.csv and TensorBoard, `metrics`), then the checkpoints (`Checkpoints`: Orbax, the latest
+two and the best, `checkpoint`; each written while the next epochs train, but the run's last, which is on disk
+before `train` returns or raises). Around them: SIGINT/SIGTERM (save after the epoch in flight) and the divergence
+guard (a non-finite metric or parameter stops the run without saving it; `guard`), inside the run directory's lock
+that `preflight.prepare` holds. A run resumed with `fresh_buffer` restores all but the replay buffer, which starts
+empty; config.json's "fresh_buffer_epochs" records after which epochs.
 Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
 `ConfigError` (an epoch program larger than the device's memory, `memory.check_program`: refused before it
 trains), `Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk),
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import contextlib
-import importlib.util
 import json
 import os
 import sys
@@ -33,9 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from bidal_jax.config import Config, ConfigError
+from bidal_jax.config import Config
 from bidal_jax.run import checkpoint, exported, memory, multihost, rundir, runfiles
-from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding
+from bidal_jax.run.devices import device_layout, make_seeded, seed_sharding, use_physics, warp_problem
 from bidal_jax.run.guard import Diverged, Interrupted, StopSignals, divergence, finite_flags, guarded
 from bidal_jax.run.metrics import MetricsLog, epoch_row, write_atomic
 from bidal_jax.train import make_train
@@ -67,50 +67,14 @@ class Programs(NamedTuple):
 
 
 def make_programs(env, config: Config) -> Programs:
-    """The programs of the run `config` on `env`: laid out on devices, traced and compiled only when called."""
+    """The programs of the run `config` on `env`: laid out on devices (`devices.device_layout`), with `env` stepping
+    on the physics engine the run asks for, sized for the worlds of one device (`devices.use_physics`: before
+    anything is traced); traced and compiled only when called."""
     run = config.run
     devices, shards = device_layout(run.seeds, config.train, run.env_shards)
+    use_physics(env, config, devices, shards)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return Programs(init, epoch, seed_sharding(devices, shards), devices, shards, run.seed, run.seeds)
-
-
-def physics_engine(choice: str, devices: list) -> str:
-    """The engine of a run of `RunConfig.physics` `choice` laid out on `devices`: "warp" (MuJoCo Warp) needs NVIDIA
-    GPUs and the warp-lang package, "auto" is warp where both hold and "jax" (MJX) elsewhere. On several devices each
-    steps its own envs' Warp physics (`devices.make_seeded`). ConfigError for warp where it cannot run."""
-    if choice == "jax":
-        return "jax"
-    problem = warp_problem(devices)
-    if problem is None:
-        return "warp"
-    if choice == "auto":
-        return "jax"
-    raise ConfigError(f"--physics warp needs NVIDIA GPUs and warp-lang: {problem}; allowed here: jax, auto")
-
-
-def warp_problem(devices: list) -> str | None:
-    """Why MuJoCo Warp cannot step a run laid out on `devices`, or None where it can."""
-    platforms = sorted({d.platform for d in devices})
-    if platforms != ["gpu"]:
-        return f"this run lays out {len(devices)} {'/'.join(platforms)} device(s)"
-    if importlib.util.find_spec("warp") is None:
-        return "the warp-lang package is not installed (pip install 'bidal-jax[warp]')"
-    return None
-
-
-def physics_worlds(seeds: int, train, devices: int = 1, shards: int = 1) -> int:
-    """The most envs one device steps at once in a program of `seeds` seeds and the `TrainConfig` `train` laid out
-    on `devices` devices with `shards` env shards (`devices.device_layout`), the worlds Warp's contact buffer is
-    sized for: each seed device's seeds × the wider of its shard of the training and evaluation envs."""
-    return seeds // (devices // shards) * (max(train.num_envs, train.eval_envs) // shards)
-
-
-def use_physics(env, config: Config) -> None:
-    """Step `env` on the engine of `config.run.physics` (`physics_engine`) for the run's worlds (`physics_worlds`)."""
-    run = config.run
-    devices, shards = device_layout(run.seeds, config.train, run.env_shards)
-    env.use_backend(physics_engine(run.physics, devices),
-                    worlds=physics_worlds(run.seeds, config.train, len(devices), shards))
 
 
 def restore_state(env, config: Config, step: int | None = None):
@@ -131,8 +95,8 @@ def _restore(run_dir: str, programs: Programs, step: int | None = None, fresh_bu
 
 
 def build(
-    env, config: Config, resume: bool, log: Callable = _log, initialize: Callable | None = None,
-    fresh_buffer: bool = False, built: Programs | None = None,
+    env, config: Config, programs: Programs, resume: bool, log: Callable = _log, initialize: Callable | None = None,
+    fresh_buffer: bool = False,
 ):
     """(compiled epoch, state to start from, its epoch, env shards): a new state, or the latest checkpoint's
     (with `fresh_buffer`, all of it but the replay buffer, which starts empty); writes nothing.
@@ -140,9 +104,9 @@ def build(
     `initialize(state) -> state` edits a new run's initial state (e.g. parameters restored
     from another run for transfer); a resumed run continues its checkpoint as it is.
     Compilation is reported through `log` (stderr by default): a line when it starts, one with its duration.
-    `built`: the run's programs (`preflight.prepare` built them), else built here.
+    `programs`: the run's, built once (`preflight.prepare`, `make_programs`); nothing is built here.
     """
-    run, programs = config.run, built or make_programs(env, config)
+    run = config.run
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
     engine = ", physics on MuJoCo Warp" if env.backend == "warp" else ""
@@ -211,30 +175,6 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
     return compiled
 
 
-def train(
-    env, config: Config, *, quiet: bool = False, resume: bool = False, initialize: Callable | None = None,
-    fresh_buffer: bool = False, programs: Programs | None = None,
-) -> dict[str, float]:
-    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`; with
-    `fresh_buffer` too, an empty replay buffer instead of the checkpoint's); returns
-    the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
-    edits a new run's initial state (see `build`); `programs` are the run's (`preflight.prepare` built them;
-    else built here).
-
-    Runs inside the run directory's lock (`preflight.prepare`'s, which holds it until the run ends).
-    Raises CheckpointError (before writing anything) when the checkpoint cannot be
-    restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
-    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
-    checkpoint is deleted: the last good one is what a resumed run continues).
-
-    With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
-    process's devices, the checkpoints are written by all, config.json, the metrics and the progress
-    bar by process 0 only; a signal to any process stops all after the same epoch.
-    """
-    begun = time.time()  # the clock of wall_time_with_compile
-    return _train(env, config, quiet, resume, initialize, begun, fresh_buffer, programs)
-
-
 def _recorded(run_dir: str, key: str, resume: bool) -> list:
     """The list `key` of a resumed run's config.json (empty for a new run, or a missing or damaged copy:
     what came before is unknown)."""
@@ -273,30 +213,94 @@ def _last_good(saved: int | None, ckpt_dir: str) -> str:
     return f"the last good checkpoint is epoch {saved} in {ckpt_dir}" if saved else "no checkpoint was saved"
 
 
-def _finish(pending: checkpoint.Pending | None, saved: int | None, ckpt_dir: str, size: str) -> int | None:
-    """Wait for the checkpoint being written (`pending`), if any: the epoch of the last checkpoint on disk then
-    (`saved` before it); its failure is raised as `rundir.disk_errors` words it."""
-    if pending is None:
-        return saved
-    with rundir.disk_errors(f"saving checkpoint {pending.step} in {ckpt_dir} (needs about {size})",
-                            _last_good(saved, ckpt_dir)):
-        pending.wait()
-    return pending.step
+class Checkpoints:
+    """The run's checkpoints, a callback of the loop: `checkpoints(e, state, row, last)` after epoch `e` saves one every
+    `checkpoint_every` epochs, written while the next epochs train (`checkpoint.save_in_background`), and the run's
+    `last` epoch on disk before the loop ends. `saved`: the epoch of the last checkpoint on disk, which the error lines
+    name (`last_good`); `size`: what one needs on the disk, as the disk errors say it."""
+
+    def __init__(self, ckpt_dir: str, cfg: dict, shards: int, every: int, saved: int | None, size: str):
+        self.dir, self.cfg, self.shards, self.every, self.saved, self.size = ckpt_dir, cfg, shards, every, saved, size
+        self.pending: checkpoint.Pending | None = None  # the checkpoint being written while the next epochs train
+        self.manager = checkpoint.manager(ckpt_dir)
+
+    def last_good(self) -> str:
+        return _last_good(self.saved, self.dir)
+
+    def finish(self) -> None:
+        """Wait for the checkpoint being written, if any: then it is the last on disk; its failure is raised as
+        `rundir.disk_errors` words it."""
+        if self.pending is None:
+            return
+        with rundir.disk_errors(f"saving checkpoint {self.pending.step} in {self.dir} (needs about {self.size})",
+                                self.last_good()):
+            self.pending.wait()
+        self.saved, self.pending = self.pending.step, None
+
+    def __call__(self, e: int, state: Any, row: dict[str, float], last: bool) -> None:
+        if e % self.every and not last:
+            return
+        self.finish()
+        with rundir.disk_errors(f"saving checkpoint {e} in {self.dir} (needs about {self.size})", self.last_good()):
+            if last:  # the run ends here: on disk before it does
+                checkpoint.save(self.manager, e, state, self.cfg, row["eval_success"], self.shards)
+                self.saved = e
+            else:
+                self.pending = checkpoint.save_in_background(self.manager, e, state, self.cfg, row["eval_success"],
+                                                             self.shards)
+
+    def abandon(self) -> None:
+        """On an error that ends the loop: the checkpoint being written is finished first (then it is the last good
+        one); its own errors never mask that one."""
+        if self.pending is not None:
+            with contextlib.suppress(Exception):
+                self.pending.wait()
+                self.saved = self.pending.step
+
+    def close(self) -> None:
+        self.manager.close()
 
 
-def _train(
-    env, config: Config, quiet: bool, resume: bool, initialize: Callable | None, begun: float, fresh_buffer: bool,
-    programs: Programs | None,
+def metrics_writer(log: MetricsLog, run_dir: str, checkpoints: Checkpoints) -> Callable[[int, dict], None]:
+    """The loop's progress callback: `write(e, row)` adds epoch `e`'s row to metrics.csv and TensorBoard (`log`); a
+    failed write is one `DiskError` line naming the last good checkpoint."""
+
+    def write(e: int, row: dict[str, float]) -> None:
+        with rundir.disk_errors(f"writing the metrics of epoch {e} in {run_dir}", checkpoints.last_good()):
+            log.write(row)
+
+    return write
+
+
+def train(
+    env, config: Config, programs: Programs, *, quiet: bool = False, resume: bool = False,
+    initialize: Callable | None = None, fresh_buffer: bool = False,
 ) -> dict[str, float]:
-    """`train`'s loop; `begun`: when `train` was called."""
+    """Run the training loop in `run.run_dir` (from its latest checkpoint with `resume`; with
+    `fresh_buffer` too, an empty replay buffer instead of the checkpoint's); returns
+    the last epoch's metrics row (empty when the run is already at `run.epochs`). `initialize`
+    edits a new run's initial state (see `build`); `programs` are the run's, built once (`preflight.prepare`):
+    the loop trains what it is given.
+
+    Runs inside the run directory's lock (`preflight.prepare`'s, which holds it until the run ends).
+    Raises CheckpointError (before writing anything) when the checkpoint cannot be
+    restored, Diverged on a non-finite metric or parameter, Interrupted after saving on
+    SIGINT/SIGTERM, rundir.DiskError when a write fails for want of disk (the unfinished
+    checkpoint is deleted: the last good one is what a resumed run continues).
+
+    With several processes (`bidal_jax.run.multihost`), every process calls it: the seeds span every
+    process's devices, the checkpoints are written by all, config.json, the metrics and the progress
+    bar by process 0 only; a signal to any process stops all after the same epoch.
+    """
+    begun = time.time()  # the clock of wall_time_with_compile
     run = config.run
     ckpt_dir = os.path.join(run.run_dir, "checkpoints")
     main = multihost.is_main()
     with StopSignals(ckpt_dir) as stop:
         resumed = checkpoint.latest_step(ckpt_dir) if resume else None
         with memory.out_of_memory("compiling and starting the training program", lambda: _last_good(resumed, ckpt_dir)):
-            epoch, state, start_epoch, shards = build(env, config, resume, initialize=initialize,
-                                                      fresh_buffer=fresh_buffer, built=programs)
+            epoch, state, start_epoch, shards = build(env, config, programs, resume, initialize=initialize,
+                                                      fresh_buffer=fresh_buffer)
         cfg = {
             **config.to_dict(),
             "physics": history_record(run.run_dir, "physics", env.physics_id, resume),
@@ -305,21 +309,23 @@ def _train(
             "fresh_buffer_epochs": fresh_buffer_record(run.run_dir, start_epoch, resume, fresh_buffer),
         }
         saved = start_epoch if resume else None
+        size = rundir.megabytes(rundir.with_margin(memory.tree_bytes(state)))
         with rundir.disk_errors(f"writing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
             if main:
                 os.makedirs(run.run_dir, exist_ok=True)
                 write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
             log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
-            mngr = checkpoint.manager(ckpt_dir)
+            checkpoints = Checkpoints(ckpt_dir, cfg, shards, run.checkpoint_every, saved, size)
+        # the loop's callbacks after each epoch: the metrics writer with its row, then (unless the run diverged) the
+        # checkpoints with its state
+        progress = metrics_writer(log, run.run_dir, checkpoints)
 
         row = log.last_row
         wall_before = row.get("wall_time", 0.0)
         # (a run resumed from metrics written before this column: its time so far without compiling)
         compiled_before = row.get("wall_time_with_compile", wall_before)
         steps_before = float(np.sum(multihost.to_host(state.env_steps)))
-        size = rundir.megabytes(rundir.with_margin(rundir.tree_bytes(state)))
         start = time.time()
-        pending = None  # the checkpoint being written while the next epochs train (`checkpoint.save_in_background`)
         bar = tqdm(range(start_epoch + 1, run.epochs + 1), desc=f"{run.env}/{run.agent}", disable=quiet or not main,
                    unit="epoch", initial=start_epoch, total=run.epochs)
         e = start_epoch
@@ -332,46 +338,30 @@ def _train(
                 row = epoch_row(e, metrics, now - t, steps_before, wall_before + now - start,
                                 compiled_before + now - begun)
                 steps_before = row["env_steps_total"]
-                with rundir.disk_errors(f"writing the metrics of epoch {e} in {run.run_dir}",
-                                        _last_good(saved, ckpt_dir)):
-                    log.write(row)
+                progress(e, row)
                 bad = divergence(metrics, finite_flags(multihost.to_host(guarded(state))))
                 if bad:
-                    saved, pending = _finish(pending, saved, ckpt_dir, size), None
-                    raise Diverged(f"diverged at epoch {e}: {bad}; {_last_good(saved, ckpt_dir)}")
+                    checkpoints.finish()
+                    raise Diverged(f"diverged at epoch {e}: {bad}; {checkpoints.last_good()}")
                 bar.set_postfix(eval_success=f"{row['eval_success']:.2f}", train_success=f"{row['train_success']:.2f}")
                 done = run.target_success > 0 and row["eval_success"] >= run.target_success
                 # read once: a signal arriving after this waits for the next epoch; one process's stops all
                 signum = multihost.largest(stop.signum or 0) or None
-                last = e == run.epochs or done or signum
-                if e % run.checkpoint_every == 0 or last:
-                    saved, pending = _finish(pending, saved, ckpt_dir, size), None
-                    with rundir.disk_errors(f"saving checkpoint {e} in {ckpt_dir} (needs about {size})",
-                                            _last_good(saved, ckpt_dir)):
-                        if last:  # the run ends here: on disk before it does
-                            checkpoint.save(mngr, e, state, cfg, row["eval_success"], shards)
-                            saved = e
-                        else:
-                            pending = checkpoint.save_in_background(mngr, e, state, cfg, row["eval_success"], shards)
+                checkpoints(e, state, row, last=bool(e == run.epochs or done or signum))
                 if signum:
                     raise Interrupted(signum, e, run.run_dir)
                 if done:
                     break
         except BaseException as err:
-            # a checkpoint being written is finished first (then it is the last good one); these errors never mask
-            # this one
-            if pending is not None:
-                with contextlib.suppress(Exception):
-                    pending.wait()
-                    saved = pending.step
-            runfiles.close_quietly(bar.close, log.close, mngr.close)
+            checkpoints.abandon()
+            runfiles.close_quietly(bar.close, log.close, checkpoints.close)
             if memory.exhausted(err):  # the device ran out of memory: one line, the last good checkpoint kept
-                raise memory.ran_out(f"training epoch {e}", err, _last_good(saved, ckpt_dir)) from None
+                raise memory.ran_out(f"training epoch {e}", err, checkpoints.last_good()) from None
             raise
-        with rundir.disk_errors(f"closing the run's files in {run.run_dir}", _last_good(saved, ckpt_dir)):
+        with rundir.disk_errors(f"closing the run's files in {run.run_dir}", checkpoints.last_good()):
             bar.close()
             log.close()
-            mngr.close()
+            checkpoints.close()
     return row
 
 

@@ -10,7 +10,7 @@ Before training, a run is refused with one line saying what to reduce (`ConfigEr
 What XLA still cannot allocate while a program compiles or runs (its estimate is not the allocator's, other
 processes share the device) raises `RESOURCE_EXHAUSTED` (`exhausted`); `out_of_memory` and `ran_out` turn it
 into `OutOfMemory`, one line naming what ran out, what to reduce and the last good checkpoint, with its own exit
-code (`experiments.cli`).
+code (`experiments.cli`). `tree_bytes` is what a state's arrays take, whole (the device check's and the disk's).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import os
 from typing import Any, Callable, Iterator
 
 import jax
+import numpy as np
 
 from bidal_jax.config import ConfigError
 
@@ -112,3 +113,8 @@ def out_of_memory(doing: str, after: Callable[[], str]) -> Iterator[None]:
         if not exhausted(err):
             raise
         raise ran_out(doing, err, after()) from None
+
+
+def tree_bytes(tree: Any) -> int:
+    """Bytes of a pytree's arrays (or shape/dtype structs), whole: what a checkpoint of it writes, uncompressed."""
+    return int(sum(np.prod(x.shape, dtype=np.int64) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree)))

@@ -1,19 +1,21 @@
 """Preparing a run: every check before anything is compiled or written, and the run directory's lock.
 
     with prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
-        row = loop.train(prepared.env, prepared.config, programs=prepared.programs)
+        row = loop.train(prepared.env, prepared.config, prepared.programs)
 
-`prepare` checks the config (`validate.check`), the run directory (a new run never mixes into
-an existing one; `overwrite` deletes only what a run writes), a resumed run's checkpoint
-config; it builds the env and the run's programs once (`loop.make_programs`), checks what the env
-must offer, a resumed run's files, whether the training state (`jax.eval_shape` of those programs) fits
+`prepare` is one pass, in this order: the run directory not in use (`rundir.check_not_in_use`); the config,
+resolved from the values given (`resolve`) or, resuming, the checkpoint's (`resumed_config`: refused where it
+differs from config.json or from the options given; the run's files, `runfiles.check_run_files`, and the
+checkpoint's replay buffer), checked once (`validate.check`); a new run's directory (never mixed into an existing
+one; `overwrite` deletes only what a run writes, `rundir.check_run_dir`); the env, and what it must offer
+(`validate.check_env_support`); the run's programs, built once (`loop.make_programs`: its devices and physics
+engine too), from whose training state (`jax.eval_shape`) a transfer's source run is checked, and whether it fits
 in the device's memory (`memory.check_state`; the compiled epoch is checked once compiled, `memory.check_program`)
-and one checkpoint of it on the disk and, for a transfer, the source run; then it
-locks the run directory (`rundir.hold`, process 0), deletes it with `overwrite`, and holds the lock until
-the `with` block ends: a second run, resumed run or experiment on it is refused. Errors are one line
-each: `ConfigError` (`rundir.RunDirInUse` and `runfiles.RunFileError`, a resumed run's damaged file,
-among them), `CheckpointError`, `rundir.DiskError` (no space for one checkpoint, or a resumed run's file
-that it cannot write).
+and one checkpoint of it on the disk (`rundir.check_space`). Then it locks the run directory (`rundir.lock`,
+process 0), empties it with `overwrite`, and holds the lock until the `with` block ends: a second run, resumed
+run or experiment on it is refused. Errors are one line each: `ConfigError` (`rundir.RunDirInUse` and
+`runfiles.RunFileError`, a resumed run's damaged file, among them), `CheckpointError`, `rundir.DiskError` (no
+space for one checkpoint, or a resumed run's file that it cannot write).
 """
 
 from __future__ import annotations
@@ -21,21 +23,16 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-import shutil
 import time
 from typing import Any, Callable, Iterable, Iterator, NamedTuple
 
 from bidal_jax.config import Config, ConfigError, ConfigFormatError, option, resolve
-from bidal_jax.run import loop, memory, multihost, rundir, runfiles, transfer, validate
+from bidal_jax.run import loop, memory, rundir, runfiles, transfer, validate
 from bidal_jax.run.checkpoint import CheckpointError, latest_step, read_config, read_metadata
 
 # fields whose value on resume may differ from the checkpoint's: the budget, the place, how the convs are
 # computed (the same function and parameters, `NetworkConfig.conv_impl`) and the physics engine (one model)
 RESUME_MAY_CHANGE = ("epochs", "run_dir", "conv_impl", "physics")
-# what a run writes into its directory; overwrite deletes nothing else
-RUN_FILES = frozenset(
-    {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", rundir.LOCK_FILE}
-)
 
 
 class Prepared(NamedTuple):
@@ -46,23 +43,19 @@ class Prepared(NamedTuple):
     programs: loop.Programs
 
 
-def _config_differences(saved: dict, other: dict) -> list[tuple[str, str, object, object]]:
-    """(group, field, saved value, other value) for each field that differs, but for those that may change."""
-    return [
-        (group, field, value, other.get(group, {}).get(field))
-        for group, values in saved.items()
-        for field, value in values.items()
-        if field not in RESUME_MAY_CHANGE and other.get(group, {}).get(field) != value
-    ]
-
-
 def _check_config_json(run_dir: str, saved: dict, where: str) -> None:
     """Refuse a checkpoint whose config differs from the run's config.json (one from another run)."""
     try:
         recorded = runfiles.read_json(os.path.join(run_dir, "config.json"))
     except runfiles.RunFileError:
         return  # a missing or damaged copy is rewritten from the checkpoint's config
-    differences = _config_differences(saved, recorded)
+    # (group, field, saved value, recorded value) of each field that differs, but for those that may change
+    differences = [
+        (group, field, value, recorded.get(group, {}).get(field))
+        for group, values in saved.items()
+        for field, value in values.items()
+        if field not in RESUME_MAY_CHANGE and recorded.get(group, {}).get(field) != value
+    ]
     if differences:
         group, field = differences[0][:2]
         what = {"env": "another env", "agent": "another agent"}.get(field) or (
@@ -106,35 +99,15 @@ def resumed_config(run_dir: str, given: dict[str, Any]) -> Config:
     return dataclasses.replace(config, run=run, network=network)
 
 
-def check_run_files(run_dir: str) -> None:
-    """A resumed run's files, before anything is compiled: its metrics.csv must read as CSV (`runfiles.read_csv`;
-    RunFileError, exit 2, naming a damaged one or a folder in its place), config.json must not be a folder, and
-    the run must be able to append to metrics.csv and replace config.json (DiskError, exit 4, naming the path)."""
-    metrics_csv, config_json = os.path.join(run_dir, "metrics.csv"), os.path.join(run_dir, "config.json")
-    if os.path.lexists(metrics_csv):
-        runfiles.read_csv(metrics_csv)
-    if os.path.isdir(config_json):
-        raise runfiles.RunFileError(f"{config_json}: is a directory, not a file")
-    for path in (run_dir, *(p for p in (metrics_csv,) if os.path.lexists(p))):
-        if not os.access(path, os.W_OK):
-            raise rundir.DiskError(f"permission denied: {path} cannot be written; fix its permissions and resume")
-
-
-def check_run_dir(run_dir: str, overwrite: bool) -> None:
-    """A new run never mixes into an existing one; overwrite only deletes what a run writes."""
-    if os.path.exists(run_dir) and not os.path.isdir(run_dir):
-        raise ConfigError(f"--run-dir {run_dir}: is a file, not a directory")
-    entries = sorted(e for e in os.listdir(run_dir) if e != rundir.LOCK_FILE) if os.path.isdir(run_dir) else []
-    if entries and not overwrite:
-        raise ConfigError(
-            f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run "
-            "or --overwrite to delete it"
-        )
-    foreign = [e for e in entries if e not in RUN_FILES]
-    if foreign:
-        raise ConfigError(
-            f"--overwrite: refusing to delete {run_dir}: it holds {foreign[0]!r}, which a run does not write"
-        )
+def _resumed(given: dict[str, Any], fresh_buffer: bool) -> Config:
+    """The config of the run that `given["run_dir"]` holds (`resumed_config`), once its files
+    (`runfiles.check_run_files`) and, unless `fresh_buffer` starts an empty one, its checkpoint's replay
+    buffer (a CheckpointError saying so when the item is missing) passed."""
+    config = resumed_config(given["run_dir"], given)
+    runfiles.check_run_files(config.run.run_dir)
+    if not fresh_buffer:
+        read_metadata(os.path.join(config.run.run_dir, "checkpoints"), names=("buffer",))
+    return config
 
 
 @contextlib.contextmanager
@@ -162,84 +135,28 @@ def prepare(
         raise ConfigError("--resume needs --run-dir, the directory of the run to continue")
     if fresh_buffer and not resume:
         raise ConfigError("--fresh-buffer needs --resume: it starts a resumed run's replay buffer empty")
-    env_names = tuple(env_names)
     if given.get("run_dir"):  # a directory in use is refused before any other check names it
-        _main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
-    config = resolve(given)
-    validate.check(config, env_names=env_names)  # the values given
-    if resume:
-        config = resumed_config(given["run_dir"], given)
-        check_run_files(config.run.run_dir)
-        validate.check(config, env_names=env_names)  # the checkpoint's
-        if not fresh_buffer:  # its buffer's metadata: a CheckpointError saying so when the item is missing
-            read_metadata(os.path.join(config.run.run_dir, "checkpoints"), names=("buffer",))
-    else:
-        run = config.run
-        if not run.run_dir:
+        rundir.main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
+    # the config: the values given, or the checkpoint's that a resumed run continues; checked once
+    config = _resumed(given, fresh_buffer) if resume else resolve(given)
+    validate.check(config, env_names=tuple(env_names))
+    if not resume:  # a new run: into a directory of its own (by default one named after it and the time)
+        if not config.run.run_dir:
             stamp = time.strftime("%Y%m%d-%H%M%S")
-            run = dataclasses.replace(run, run_dir=os.path.join("runs", f"{run.env}-{run.agent}-{stamp}"))
-        check_run_dir(run.run_dir, overwrite)
-        config = dataclasses.replace(config, run=run)
-    # what the env must offer and whether the state fits (traces init, compiles nothing)
+            run_dir = os.path.join("runs", f"{config.run.env}-{config.run.agent}-{stamp}")
+            config = dataclasses.replace(config, run=dataclasses.replace(config.run, run_dir=run_dir))
+        rundir.check_run_dir(config.run.run_dir, overwrite)
     run = config.run
+    # the env and the programs, built once: what the env must offer and whether the state fits (traces init,
+    # compiles nothing)
     env = make_env(run.env, render=config.agent.uses_image) if env is None else env
     validate.check_env_support(config.train, env)
-    loop.use_physics(env, config)
     programs = loop.make_programs(env, config)
     state = programs.abstract_state()
-    whole = rundir.tree_bytes(state)  # every seed's: what a checkpoint holds
-    memory.check_state(whole // len(programs.devices), memory.device_memory(), run.seeds)
-    rundir.check_space(run.run_dir, whole)
     if run.init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(config, state, env.observation_spec.proprio_segments, make_env)
-    with lock(run.run_dir, resume, overwrite):
-        if overwrite:
-            delete_run_dir(run.run_dir)
-        multihost.barrier("bidal_jax.run.preflight.prepare")
+    whole = memory.tree_bytes(state)  # every seed's: what a checkpoint holds
+    memory.check_state(whole // len(programs.devices), memory.device_memory(), run.seeds)
+    rundir.check_space(run.run_dir, whole)
+    with rundir.lock(run.run_dir, resume, overwrite):
         yield Prepared(config, env, programs)
-
-
-def _main_decides(check: Callable[[], None], what: str) -> None:
-    """Run `check` on process 0 only (the one that locks and writes); every process raises if it
-    raised a ConfigError (process 0 that one, the others one naming `what`). Every process calls it."""
-    refused = None
-    if multihost.is_main():
-        try:
-            check()
-        except ConfigError as err:
-            refused = err
-    if multihost.largest(int(refused is not None)):
-        raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
-
-
-@contextlib.contextmanager
-def lock(run_dir: str, resume: bool, overwrite: bool) -> Iterator[None]:
-    """Hold `run_dir`'s lock for the block (process 0; `rundir.hold`, then `rundir.release`), the one owner
-    of the lock of a run, and check a new run's directory again under it (a run that ended meanwhile may
-    have filled it). Every process raises when process 0 is refused: RunDirInUse or ConfigError."""
-
-    def take() -> None:
-        rundir.hold(run_dir)
-        try:
-            if not resume:
-                check_run_dir(run_dir, overwrite)
-        except ConfigError:
-            rundir.release(run_dir)
-            raise
-
-    _main_decides(take, f"run directory {run_dir}")
-    try:
-        yield
-    finally:
-        if multihost.is_main():
-            rundir.release(run_dir)
-
-
-def delete_run_dir(run_dir: str) -> None:
-    """Delete what a run directory that `check_run_dir(run_dir, overwrite=True)` accepted holds, but
-    its lock: process 0 deletes it, every process waits until it is gone."""
-    if multihost.is_main() and os.path.isdir(run_dir):
-        for name in set(os.listdir(run_dir)) - {rundir.LOCK_FILE}:
-            path = os.path.join(run_dir, name)
-            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
-    multihost.barrier("bidal_jax.run.preflight.delete_run_dir")

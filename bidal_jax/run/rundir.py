@@ -1,5 +1,5 @@
-"""The run directory's guards: one writer at a time, enough disk for a checkpoint, and disk
-failures reported in one line.
+"""The run directory's guards: one writer at a time, a new run into an empty directory, enough disk for a
+checkpoint, and disk failures reported in one line.
 
 - `hold(run_dir)` takes an exclusive advisory lock (`fcntl.flock`) on `RUN_DIR/.lock` for this
   process, holding "host H, PID P" for the message of a run refused because of it, until
@@ -9,6 +9,10 @@ failures reported in one line.
   `release` deletes the lock file before it unlocks; `hold` checks that the file it locked is
   still the one at the path, so two processes never both hold one directory. `lock_file` and
   `unlock_file` are that lock on any file (a grid's `--out`: `experiments.cluster`).
+- `check_run_dir(run_dir, overwrite)`: a new run never mixes into an existing one (an `overwrite` deletes only
+  what a run writes, `RUN_FILES`); `lock(run_dir, resume, overwrite)`: a run's directory held for a block
+  (`hold`, the new run's directory checked again under it and, with `overwrite`, emptied, then `release`),
+  process 0 deciding for every process (`main_decides`).
 - `check_space(directory, needed)` refuses (`DiskError`) a run whose file system has less free
   space than one checkpoint needs (`with_margin`: its arrays' bytes, uncompressed, plus a margin).
 - `disk_errors(what, last_good)`: a block whose disk failure (no space, quota, read-only file
@@ -32,14 +36,16 @@ import re
 import shutil
 import socket
 import sys
-from typing import Any, Callable, Iterator
-
-import jax
-import numpy as np
+from typing import Callable, Iterator
 
 from bidal_jax.config import ConfigError
+from bidal_jax.run import multihost
 
 LOCK_FILE = ".lock"
+# what a run writes into its directory; overwrite deletes nothing else
+RUN_FILES = frozenset(
+    {"config.json", "metrics.csv", "metrics.csv.tmp", "config.json.tmp", "tb", "checkpoints", LOCK_FILE}
+)
 # the disk failures that end a run with one line, and how that line names them
 DISK_ERRNOS = {
     errno.ENOSPC: "no space left on device",
@@ -150,12 +156,77 @@ def release(run_dir: str) -> None:
         unlock_file(os.path.join(run_dir, LOCK_FILE), fd)
 
 
+# ----- a run's directory: new, in use by nobody, emptied --------------------------------------------------
+
+
+def main_decides(check: Callable[[], None], what: str) -> None:
+    """Run `check` on process 0 only (the one that locks and writes); every process raises if it
+    raised a ConfigError (process 0 that one, the others one naming `what`). Every process calls it."""
+    refused = None
+    if multihost.is_main():
+        try:
+            check()
+        except ConfigError as err:
+            refused = err
+    if multihost.largest(int(refused is not None)):
+        raise refused or ConfigError(f"{what}: refused by process 0 (see its error)")
+
+
+def check_run_dir(run_dir: str, overwrite: bool) -> None:
+    """A new run never mixes into an existing one; overwrite only deletes what a run writes (`RUN_FILES`)."""
+    if os.path.exists(run_dir) and not os.path.isdir(run_dir):
+        raise ConfigError(f"--run-dir {run_dir}: is a file, not a directory")
+    entries = sorted(e for e in os.listdir(run_dir) if e != LOCK_FILE) if os.path.isdir(run_dir) else []
+    if entries and not overwrite:
+        raise ConfigError(
+            f"--run-dir {run_dir}: exists and is not empty; use --resume to continue its run "
+            "or --overwrite to delete it"
+        )
+    foreign = [e for e in entries if e not in RUN_FILES]
+    if foreign:
+        raise ConfigError(
+            f"--overwrite: refusing to delete {run_dir}: it holds {foreign[0]!r}, which a run does not write"
+        )
+
+
+@contextlib.contextmanager
+def lock(run_dir: str, resume: bool, overwrite: bool) -> Iterator[None]:
+    """Hold `run_dir`'s lock for the block (process 0; `hold`, then `release`), the one owner of the lock
+    of a run: a new run's directory is checked again under it (a run that ended meanwhile may have filled
+    it) and, with `overwrite`, emptied (`delete_run_dir`); every process waits for the others before the
+    block. Every process raises when process 0 is refused: RunDirInUse or ConfigError."""
+
+    def take() -> None:
+        hold(run_dir)
+        try:
+            if not resume:
+                check_run_dir(run_dir, overwrite)
+        except ConfigError:
+            release(run_dir)
+            raise
+
+    main_decides(take, f"run directory {run_dir}")
+    try:
+        if overwrite:
+            delete_run_dir(run_dir)
+        multihost.barrier("bidal_jax.run.preflight.prepare")
+        yield
+    finally:
+        if multihost.is_main():
+            release(run_dir)
+
+
+def delete_run_dir(run_dir: str) -> None:
+    """Delete what a run directory that `check_run_dir(run_dir, overwrite=True)` accepted holds, but
+    its lock: process 0 deletes it, every process waits until it is gone."""
+    if multihost.is_main() and os.path.isdir(run_dir):
+        for name in set(os.listdir(run_dir)) - {LOCK_FILE}:
+            path = os.path.join(run_dir, name)
+            shutil.rmtree(path) if os.path.isdir(path) else os.remove(path)
+    multihost.barrier("bidal_jax.run.preflight.delete_run_dir")
+
+
 # ----- disk space and disk errors ----------------------------------------------------------------
-
-
-def tree_bytes(tree: Any) -> int:
-    """Bytes of a pytree's arrays (or shape/dtype structs), whole: what a checkpoint of it writes, uncompressed."""
-    return int(sum(np.prod(x.shape, dtype=np.int64) * np.dtype(x.dtype).itemsize for x in jax.tree.leaves(tree)))
 
 
 def with_margin(nbytes: int) -> int:

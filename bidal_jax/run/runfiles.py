@@ -4,7 +4,8 @@ Reading (config.json, metrics.csv; every command that reads run folders comes he
 `experiments.report.load_run`, `loop` and `preflight`): `read_json(path)` and `read_csv(path)` turn
 a file that is missing, of the wrong type (a directory), unreadable (permissions, I/O), binary
 (NUL bytes, not UTF-8) or malformed into `RunFileError`, a `ConfigError` (exit 2) whose one line
-names the file and what is wrong with it.
+names the file and what is wrong with it. `check_run_files(run_dir)`: a resumed run's files read and can be
+written, before anything is compiled (`preflight.prepare`).
 
 Writing: `write_atomic(path, text)` writes through `PATH.tmp` and deletes it when the write fails, so a
 failure leaves no temporary file that refuses the same command again ("exists and is not empty");
@@ -24,6 +25,7 @@ import os
 from typing import Any, Callable
 
 from bidal_jax.config import ConfigError
+from bidal_jax.run.rundir import DiskError
 
 TMP_SUFFIX = ".tmp"
 
@@ -121,3 +123,17 @@ def close_quietly(*closers: Callable[[], Any]) -> None:
     for close in closers:
         with contextlib.suppress(Exception):
             close()
+
+
+def check_run_files(run_dir: str) -> None:
+    """A resumed run's files, before anything is compiled: its metrics.csv must read as CSV (`read_csv`;
+    RunFileError, exit 2, naming a damaged one or a folder in its place), config.json must not be a folder, and
+    the run must be able to append to metrics.csv and replace config.json (DiskError, exit 4, naming the path)."""
+    metrics_csv, config_json = os.path.join(run_dir, "metrics.csv"), os.path.join(run_dir, "config.json")
+    if os.path.lexists(metrics_csv):
+        read_csv(metrics_csv)
+    if os.path.isdir(config_json):
+        raise RunFileError(f"{config_json}: is a directory, not a file")
+    for path in (run_dir, *(p for p in (metrics_csv,) if os.path.lexists(p))):
+        if not os.access(path, os.W_OK):
+            raise DiskError(f"permission denied: {path} cannot be written; fix its permissions and resume")

@@ -20,8 +20,7 @@ import jax
 import envs_mjx
 from bidal_jax.config import Config, NetworkConfig, TrainConfig, resolve
 from bidal_jax.run import validate
-from bidal_jax.run.devices import device_layout, make_seeded
-from bidal_jax.run.loop import physics_engine, physics_worlds
+from bidal_jax.run.devices import device_layout, make_seeded, physics_engine, physics_worlds
 from bidal_jax.train import make_train
 
 
@@ -90,7 +89,7 @@ def seeded_program(
     """The training program of `seeds` vmapped seeds of the env's preset for `agent` (with the
     `TrainConfig` overrides `train` and `NetworkConfig` overrides `network`) on the first `n_devices` devices,
     laid out as a run lays them out (`devices.device_layout`), its env's physics on `backend` (jax, warp, auto,
-    or the preset's `RunConfig.physics`; `loop.physics_engine`) with the physics `options`."""
+    or the preset's `RunConfig.physics`; `devices.physics_engine`) with the physics `options`."""
     config = program_config(name, agent, train, network)
     devices, shards = device_layout(seeds, config.train, env_shards, jax.devices()[:n_devices])
     engine = physics_engine(config.run.physics if backend == "preset" else backend, devices)

@@ -43,7 +43,8 @@ def test_fresh_buffer_resumes_from_the_checkpoint_with_an_empty_buffer(trained, 
     saved = Config.from_dict(checkpoint.read_config(str(run_dir / "checkpoints")), str(run_dir))
     config = dataclasses.replace(saved, run=dataclasses.replace(saved.run, run_dir=str(run_dir)))
     lines = []
-    _, state, step, _ = loop.build(envs_mjx.make("planar_reach", render=False), config, resume=True,
+    env = envs_mjx.make("planar_reach", render=False)
+    _, state, step, _ = loop.build(env, config, loop.make_programs(env, config), resume=True,
                                    log=lines.append, fresh_buffer=True)
     expected, _ = restored_state(trained)
     assert step == EPOCHS and any("empty replay buffer" in line for line in lines), lines

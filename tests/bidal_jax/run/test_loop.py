@@ -19,7 +19,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax.config import ConfigError, TrainConfig, resolve
-from bidal_jax.run import checkpoint, loop
+from bidal_jax.run import checkpoint, devices, loop
 from experiments import run
 from tests.helpers import REPO, restored_state
 
@@ -89,38 +89,38 @@ def _devices(*platforms):
 
 @pytest.mark.parametrize("warp", [True, False])
 def test_physics_engine_is_warp_only_on_gpus_with_warp(monkeypatch, warp):
-    monkeypatch.setattr(loop.importlib.util, "find_spec", lambda name: object() if warp else None)
+    monkeypatch.setattr(devices.importlib.util, "find_spec", lambda name: object() if warp else None)
     for gpus in (_devices("gpu"), _devices("gpu", "gpu")):  # several GPUs: each steps its own envs
-        assert loop.physics_engine("jax", gpus) == "jax"
-        assert loop.physics_engine("auto", gpus) == ("warp" if warp else "jax")
+        assert devices.physics_engine("jax", gpus) == "jax"
+        assert devices.physics_engine("auto", gpus) == ("warp" if warp else "jax")
         if warp:
-            assert loop.physics_engine("warp", gpus) == "warp"
+            assert devices.physics_engine("warp", gpus) == "warp"
         else:
             with pytest.raises(ConfigError, match="warp-lang package is not installed"):
-                loop.physics_engine("warp", gpus)
-    for devices in (_devices("cpu"), _devices("cpu", "cpu")):
-        assert loop.physics_engine("auto", devices) == "jax"
+                devices.physics_engine("warp", gpus)
+    for cpus in (_devices("cpu"), _devices("cpu", "cpu")):
+        assert devices.physics_engine("auto", cpus) == "jax"
         with pytest.raises(ConfigError, match=r"^--physics warp needs NVIDIA GPUs and warp-lang: this run lays "
                                               r"out \d cpu device\(s\); allowed here: jax, auto$"):
-            loop.physics_engine("warp", devices)
+            devices.physics_engine("warp", cpus)
 
 
 def test_warps_contact_buffer_is_sized_for_one_devices_envs():
     """Each device steps its seeds' share of the envs: 8 seeds of 2,560 envs on 2 devices, 1,280 each."""
     train = TrainConfig(num_envs=2560, eval_envs=128)
-    assert loop.physics_worlds(8, train) == 8 * 2560
-    assert loop.physics_worlds(8, train, devices=2) == 4 * 2560
-    assert loop.physics_worlds(1, train, devices=2, shards=2) == 1280
-    assert loop.physics_worlds(2, TrainConfig(num_envs=16, eval_envs=64), devices=4, shards=2) == 32
+    assert devices.physics_worlds(8, train) == 8 * 2560
+    assert devices.physics_worlds(8, train, devices=2) == 4 * 2560
+    assert devices.physics_worlds(1, train, devices=2, shards=2) == 1280
+    assert devices.physics_worlds(2, TrainConfig(num_envs=16, eval_envs=64), devices=4, shards=2) == 32
 
 
 def test_a_run_on_two_gpus_steps_warp_sized_for_one_gpus_envs(monkeypatch):
     """`use_physics` asks the env for Warp with the worlds of one device: 8 seeds of 2,560 envs on 2 GPUs."""
     config = resolve({"env": "nicol_slide", "agent": "multimodal_bidal", "seeds": 8})
-    monkeypatch.setattr(loop.importlib.util, "find_spec", lambda name: object())
-    monkeypatch.setattr(loop, "device_layout", lambda seeds, train, shards: (_devices("gpu", "gpu"), 1))
+    monkeypatch.setattr(devices.importlib.util, "find_spec", lambda name: object())
     asked = []
-    loop.use_physics(types.SimpleNamespace(use_backend=lambda engine, worlds: asked.append((engine, worlds))), config)
+    env = types.SimpleNamespace(use_backend=lambda engine, worlds: asked.append((engine, worlds)))
+    devices.use_physics(env, config, _devices("gpu", "gpu"), 1)
     assert config.run.physics == "auto" and asked == [("warp", 4 * 2560)]
 
 
@@ -229,7 +229,7 @@ def test_a_new_runs_state_and_epoch_built_side_by_side_are_the_programs_own(tmp_
     env, config = envs_mjx.make("planar_reach", render=False), resolve(given)
     programs = loop.make_programs(env, config)
     expected = programs.epoch(programs.init(programs.keys()))
-    epoch, state, step, _ = loop.build(env, config, resume=False, log=lambda message: None, built=programs)
+    epoch, state, step, _ = loop.build(env, config, programs, resume=False, log=lambda message: None)
     assert step == 0
     for a, b in zip(jax.tree.leaves(epoch(state)), jax.tree.leaves(expected)):
         assert np.array_equal(np.asarray(a), np.asarray(b))

@@ -11,7 +11,7 @@ import shutil
 import pytest
 
 import envs_mjx
-from bidal_jax.run import metrics, preflight, runfiles
+from bidal_jax.run import metrics, rundir, runfiles
 from experiments import cli, run
 from tests.helpers import FINISHED_EPOCHS, TINY
 
@@ -86,7 +86,7 @@ def test_a_full_disk_while_config_json_is_written_leaves_nothing_that_refuses_a_
     (line,) = error_lines(capsys.readouterr().err)
     assert line.startswith(f"error: no space left on device while writing the run's files in {run_dir}; ")
     assert os.listdir(run_dir) == []  # no config.json.tmp; the lock released
-    preflight.check_run_dir(run_dir, overwrite=False)  # the same command is not refused
+    rundir.check_run_dir(run_dir, overwrite=False)  # the same command is not refused
 
 
 def test_ctrl_c_while_the_env_is_built_exits_130_without_a_traceback(tmp_path, capsys, monkeypatch):
