@@ -289,11 +289,8 @@ IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
 
 def env_preset(env: str, agent: str) -> dict[str, dict[str, Any]]:
     """The overrides for `env` (and for an image `agent` on it): {"run"|"train"|"network": {...}}."""
-    preset = {k: dict(v) for k, v in ENV_PRESETS.get(env, {}).items()}
-    if agent in AGENTS and AGENTS[agent].uses_image:
-        for group, values in IMAGE_AGENT_PRESETS.get(env, {}).items():
-            preset.setdefault(group, {}).update(values)
-    return preset
+    image = agent in AGENTS and AGENTS[agent].uses_image
+    return merged(ENV_PRESETS.get(env, {}), IMAGE_AGENT_PRESETS.get(env, {}) if image else {})
 
 
 CONFIG_CLASSES: dict[str, type] = {"run": RunConfig, "train": TrainConfig, "network": NetworkConfig}

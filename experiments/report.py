@@ -126,7 +126,7 @@ def load_run(run_dir: str) -> dict:
     """
     config_path, metrics_path = os.path.join(run_dir, "config.json"), os.path.join(run_dir, "metrics.csv")
     if not os.path.lexists(config_path) and (blocks := block_dirs(run_dir)):
-        found = [run for run in map(_maybe_run, blocks) if run is not None]
+        found = [run for run in map(loaded, blocks) if run is not None]
         if not found:
             raise NotARun(f"{run_dir}: no block of its seeds has epochs yet")
         return merge_blocks(run_dir, found)
@@ -157,8 +157,9 @@ def load_run(run_dir: str) -> dict:
     }
 
 
-def _maybe_run(run_dir: str) -> dict | None:
-    """`load_run`, or None for a folder without epochs yet."""
+def loaded(run_dir: str) -> dict | None:
+    """The run's metrics and config (`load_run`), or None while it has no epochs (`NotARun`); a damaged file raises
+    `RunError` naming it: an experiment stops on it (exit 2) rather than take the run for one never trained."""
     try:
         return load_run(run_dir)
     except NotARun:

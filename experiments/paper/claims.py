@@ -332,7 +332,7 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -
 def lifts(final_air: np.ndarray, overall: bool) -> int:
     """How many seeds lift: final success over air goals ≥ `LIFTS`, or, judged on overall success (a run without
     `report.AIR`), overall ≥ `LIFTS_OVERALL`, which implies the former when half the goals lie in the air."""
-    return int((final_air >= (LIFTS_OVERALL if overall else LIFTS)).sum())
+    return int((final_air >= LIFTS_OVERALL).sum()) if overall else protocol.seeds_that_lift(final_air)
 
 
 def lifting_claim(final: dict[tuple[str, str], np.ndarray], overall: Sequence[str], gaps: list[str], stale: set[str],

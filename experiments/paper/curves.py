@@ -206,9 +206,9 @@ def lift_note(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> list[s
     if not cells:
         return []
     floor = envs_mjx.make(LIFT, render=False).never_lift_success()["air"]
-    parts = [f"{agent} {run['success_air'][-last_n:].mean():.3f}, "
-             f"{protocol.seeds_that_lift(run['success_air'], last_n)} of {run['seeds']} seeds lift"
-             for agent, run in cells]
+    finals = [(agent, run["success_air"][-last_n:].mean(axis=0)) for agent, run in cells]
+    parts = [f"{agent} {final.mean():.3f}, {protocol.seeds_that_lift(final)} of {final.size} seeds lift"
+             for agent, final in finals]
     return [f"{LIFT}, air goals alone (evaluation from reset; a policy that never lifts scores {floor:.3f}): final "
             f"success over the last {last_n} epochs and the seeds that lift (their air-goal success ≥ "
             f"{protocol.LIFTS} there): " + "; ".join(parts) + ".", ""]
@@ -250,12 +250,13 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
 def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     try:
-        out = grid.out_dir(args, "curves", grid.pass_through(rest, PROG))
+        extra = grid.pass_through(rest, PROG)
+        out = grid.out_dir(args, "curves", extra)
         cluster.prepare_driver(args)
         multihost.initialize()
         tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
         agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
-        cells = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(tasks, agents, args, extra, out))
+        cells = grid.checked_arms(make_arms(tasks, agents, args, extra, out), args.last_n)
         blocks = [block for cell in cells for block in grid.blocks(cell)]
     except ConfigError as err:
         return cli.exit_code(err)

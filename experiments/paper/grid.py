@@ -42,6 +42,7 @@ from bidal_jax.run import checkpoint, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
 from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS
+from experiments.report import loaded  # the experiments read their runs through it, as `grid.loaded`
 
 # what passes through to every run: the learner and network options and the checkpoint interval
 PASS_THROUGH = frozenset({f.name for cls in (TrainConfig, NetworkConfig) for f in dataclasses.fields(cls)}) \
@@ -122,13 +123,11 @@ def out_dir(args: argparse.Namespace, name: str, given: dict[str, Any]) -> str:
     return args.out or os.path.join("results", f"{name}-{PLAIN}" if plain else name)
 
 
-def checked_arms(args: argparse.Namespace, rest: Sequence[str], prog: str,
-                 make_arms: Callable[[dict[str, Any]], list[Arm]]) -> list[Arm]:
-    """An experiment's runs, made by `make_arms` from the options passed through (`pass_through`),
-    with --last-n and every run's values checked before the first one trains; ConfigError for a bad one."""
-    if args.last_n < 1:
-        raise ConfigError(f"--last-n {args.last_n}: must be a positive integer")
-    arms = make_arms(pass_through(rest, prog))
+def checked_arms(arms: list[Arm], last_n: int | None = None) -> list[Arm]:
+    """An experiment's runs (made from the options passed through, `pass_through`), with every run's values and
+    --last-n, where the experiment has it, checked before the first one trains; ConfigError for a bad one."""
+    if last_n is not None and last_n < 1:
+        raise ConfigError(f"--last-n {last_n}: must be a positive integer")
     for arm in arms:
         validate.check(arm.config, env_names=envs_mjx.names())
     return arms
@@ -311,9 +310,10 @@ def blocks(arm: Arm, limit: float = BLOCK_SECONDS) -> list[Arm]:
     sizes = [seeds // count + (i < seeds % count) for i in range(count)]
     starts = [sum(sizes[:i]) for i in range(count)]
     first = arm.config.run.seed
-    return [dataclasses.replace(arm, name=f"{arm.name}/{report.block_name(a, a + n - 1)}", given={
-        **arm.given, "seeds": n, "seed": first + a,
-        "run_dir": os.path.join(arm.run_dir, report.block_name(a, a + n - 1))}) for a, n in zip(starts, sizes)]
+    names = [report.block_name(a, a + n - 1) for a, n in zip(starts, sizes)]
+    return [dataclasses.replace(arm, name=f"{arm.name}/{name}", given={
+        **arm.given, "seeds": n, "seed": first + a, "run_dir": os.path.join(arm.run_dir, name)})
+        for a, n, name in zip(starts, sizes, names)]
 
 
 def duration(seconds: float) -> str:
@@ -400,16 +400,6 @@ def train_arms(arms: Sequence[Arm], envs: dict[str, Any], args: argparse.Namespa
     except cli.FAILURES as err:
         return cli.exit_code(err)
     return 0
-
-
-def loaded(run_dir: str) -> dict | None:
-    """The run's metrics and config (`report.load_run`), or None while it has no epochs (`report.NotARun`); a
-    damaged file raises `report.RunError` naming it: an experiment stops on it (exit 2) rather than take the run
-    for one never trained."""
-    try:
-        return report.load_run(run_dir)
-    except report.NotARun:
-        return None
 
 
 def fresh_buffer_note(configs: dict[str, dict]) -> list[str]:

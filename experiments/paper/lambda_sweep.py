@@ -112,10 +112,9 @@ def table(lambdas: Sequence[float], runs: dict[tuple[str, float], dict]) -> str 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
-    args.last_n = 1  # no final-success window here: `grid.checked_arms` checks one
     try:
         lambdas = parse_lambdas(args.lambdas)
-        arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(lambdas, extra, args.out))
+        arms = grid.checked_arms(make_arms(lambdas, grid.pass_through(rest, PROG), args.out))
     except ConfigError as err:
         return cli.exit_code(err)
     code = 0

@@ -139,10 +139,10 @@ def lift_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     for label, path in runs:
         run = report.load_run(os.path.join(root, path))
         air = run["success_air"]
+        final = air[-LAST_N:].mean(axis=0)
         rows.append([label, run["agent"], str(run["seeds"]), str(len(run["epoch"])),
-                     ", ".join(f"{v:.3f}" for v in air[-LAST_N:].mean(axis=0)),
-                     last_mean(run["dir"], "eval_success_table"),
-                     f"{protocol.seeds_that_lift(air, LAST_N)} of {run['seeds']}", first_epoch(run["epoch"], air)])
+                     ", ".join(f"{v:.3f}" for v in final), last_mean(run["dir"], "eval_success_table"),
+                     f"{protocol.seeds_that_lift(final)} of {run['seeds']}", first_epoch(run["epoch"], air)])
     head = ["protocol", "agent", "seeds", "epochs", f"air goals, last {LAST_N} epochs, per seed",
             "table goals", "seeds that lift", "first epoch, air ≥ 0.9"]
     return report.markdown_table(head, rows)

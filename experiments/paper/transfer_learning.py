@@ -260,11 +260,12 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
 def main(argv: Sequence[str] | None = None) -> int:
     args, rest = build_parser().parse_known_args(argv)
     try:
-        out = grid.out_dir(args, "transfer", grid.pass_through(rest, PROG))
+        extra = grid.pass_through(rest, PROG)
+        out = grid.out_dir(args, "transfer", extra)
         cluster.prepare_driver(args)
         multihost.initialize()
         train_names = parse_arms(args.arms)
-        arms = grid.checked_arms(args, rest, PROG, lambda extra: make_arms(args, extra, out))
+        arms = grid.checked_arms(make_arms(args, extra, out), args.last_n)
     except ConfigError as err:
         return cli.exit_code(err)
     envs = grid.make_envs(arms)
