@@ -63,6 +63,7 @@ REMOVED_CONV_IMPLS = ("taps", "native", "stacked")
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
 INIT_NORMALISERS = ("fresh", "inherit")  # RunConfig.init_normaliser
 NOISE_VARIANTS = ("derived", "literal", "noisy_goal")  # TrainConfig.noise_variant (bidal_jax/noise.py)
+TARGET_ENCODERS = ("target", "online")  # TrainConfig.target_encoder (bidal_jax/losses.py)
 PHYSICS = ("jax", "warp", "auto")  # RunConfig.physics (bidal_jax/run/devices.py, physics_engine)
 POSITIVE_INT = Rule(int, lambda v: v >= 1, "a positive integer")
 POSITIVE = Rule(float, lambda v: v > 0, "a positive number")
@@ -168,6 +169,14 @@ class TrainConfig:
         0.1, "λ of the intrinsic reward r_i = -λ/2 ||f(φ(s),a) - φ(s')||² (Eq. 4); the paper leaves it open: 0.1 "
         "learned fastest of 0, 0.1, 0.3 and 1 over nicol_slide and nicol_lift (docs/deviations.md, the λ sweep)",
         NON_NEGATIVE,
+    )
+    target_encoder: str = doc(
+        "online",
+        "the φ(s_{t+1}) of the critic's target (Eq. 8): 'target' (a Polyak-averaged copy φ' of the encoder, as the "
+        "critic and actor have theirs) or 'online' (the online encoder's φ(s_{t+1}), stopped: the one the forward "
+        "and inverse models read, so a BidAL update encodes each frame once, as DrQ-v2 does); the paper is silent "
+        "(docs/deviations.md)",
+        one_of(TARGET_ENCODERS),
     )
     forward_weight: float = doc(
         1.0, "weight of the forward-model loss (Eq. 3) in the representation loss",
@@ -331,7 +340,8 @@ class Config:
 def recorded(group: str, fields: Any) -> Any:
     """A config group's `fields` as a run recorded them (config.json, a checkpoint's), read as this version runs
     them: fields the record is older than take what its run did where that is not their default (a transfer run,
-    `init_from`, older than `init_normaliser` inherited its source's proprio normaliser), and a conv implementation
+    `init_from`, older than `init_normaliser` inherited its source's proprio normaliser; one older than `target_encoder`
+    read the target encoder), and a conv implementation
     removed since (`REMOVED_CONV_IMPLS`) reads as "patch", which computes the same function of the same parameters,
     so that its runs still resume, evaluate and report. Other fields newer than the record take their defaults, as
     they did."""
@@ -339,6 +349,8 @@ def recorded(group: str, fields: Any) -> Any:
         return fields
     if group == "run" and fields.get("init_from") and "init_normaliser" not in fields:
         return {**fields, "init_normaliser": "inherit"}
+    if group == "train" and "target_encoder" not in fields:  # older runs' critic targets read the target encoder
+        return {**fields, "target_encoder": "target"}
     if group == "network" and fields.get("conv_impl") in REMOVED_CONV_IMPLS:
         return {**fields, "conv_impl": "patch"}
     return fields

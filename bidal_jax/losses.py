@@ -2,7 +2,8 @@
 
 - Intrinsic reward (Eq. 4): r_i = -λ/2 ‖f(φ(s_t), a_t) - φ(s_{t+1})‖².
 - Critic (Eq. 8): (Q(s_t, a_t, g) - y_t)², y_t = clip(r_e + r_i + γ Q'(s_{t+1}, μ'(s_{t+1}, g), g),
-  r_min/(1-γ), 0), with target networks Q', μ' and target encoder φ'. The clip is HER's
+  r_min/(1-γ), 0), with target networks Q', μ' on φ(s_{t+1}) of the target encoder φ' or, with
+  `target_encoder` "online", of the online encoder, stopped (`TrainConfig.target_encoder`). The clip is HER's
   (the paper has none). HER's floor -1/(1-γ) would erase r_i wherever success is out of
   reach; ours is the return of the most negative reward r_min = -1 - 2λL (`min_reward`;
   docs/deviations.md).
@@ -93,7 +94,13 @@ def make_losses(networks: Networks, config, bidal: bool) -> Losses:
             phi, next_phi = encode_pair(params.get("encoder"), batch)
         else:
             phi = networks.encode(params.get("encoder"), batch.get("image"), batch["proprio"])
-        target_next_phi = networks.encode(target_params.get("encoder"), batch.get("next_image"), batch["next_proprio"])
+        if config.target_encoder == "online":  # φ(s_{t+1}) of the online encoder, stopped: no second pass for BidAL
+            online = next_phi if bidal else networks.encode(params.get("encoder"), batch.get("next_image"),
+                                                            batch["next_proprio"])
+            target_next_phi = jax.lax.stop_gradient(online)
+        else:
+            target_next_phi = networks.encode(target_params.get("encoder"), batch.get("next_image"),
+                                              batch["next_proprio"])
         next_action = networks.actor(target_params["actor"], target_next_phi, batch["goal"])
         next_q = networks.critic(target_params["critic"], target_next_phi, next_action, batch["goal"])
         reward = batch["reward"]

@@ -33,3 +33,12 @@ def test_a_stored_config_of_a_removed_conv_impl_reads_as_patch(removed):
     assert Config.from_dict(stored, "old").network.conv_impl == "patch"
     assert recorded("network", {**stored["network"], "conv_impl": "fft"})["conv_impl"] == "fft"
     assert removed not in CONV_IMPLS
+
+
+def test_a_stored_config_older_than_target_encoder_reads_the_target_encoder():
+    """Runs recorded before `target_encoder` trained their critics on the target encoder's φ(s_{t+1}): they resume and
+    evaluate so; a new run takes the online encoder's."""
+    stored = resolve({"env": "ur5_reach"}).to_dict()
+    assert stored["train"]["target_encoder"] == "online"
+    del stored["train"]["target_encoder"]
+    assert Config.from_dict(stored, "old").train.target_encoder == "target"

@@ -77,9 +77,21 @@ def _tiny_batch(b=3, d=4, g=2, a=2, image=True):
     return batch
 
 
+def _counting(nets):
+    """`nets` whose `encode` records the frames of each call, and that record."""
+    seen = []
+
+    def encode(params, image, proprio):
+        seen.append(image.shape[0])
+        return nets.encode(params, image, proprio)
+
+    return dataclasses.replace(nets, encode=encode), seen
+
+
 def test_representation_loss_matches_a_hand_composition():
     """The loss equals critic MSE + forward + inverse losses computed here from the networks."""
-    cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, forward_weight=0.7, inverse_weight=0.2)
+    cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, forward_weight=0.7, inverse_weight=0.2,
+                      target_encoder="target")
     nets = AGENTS["multimodal_bidal"].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1)
     )
     params = nets.init(jax.random.PRNGKey(0))
@@ -139,20 +151,15 @@ def test_actor_loss_has_the_action_penalty_and_leaves_the_encoder_alone():
 def test_the_online_encoder_reads_the_next_frame_only_for_bidals_models(agent, frames):
     """BidAL's f and g read the online φ(s_{t+1}), so its update encodes (s_t, s_{t+1}) online in one pass; a
     baseline's critic needs φ(s_t) alone online (φ(s_{t+1}) comes from the target encoder): 3 frames, not 6. The
-    loss is the hand-composed one either way."""
-    cfg = TrainConfig(gamma=0.9)
+    loss is the hand-composed one either way (`target_encoder` "target")."""
+    cfg = TrainConfig(gamma=0.9, target_encoder="target")
     nets = AGENTS[agent].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
-    seen = []
-
-    def encode(params, image, proprio):
-        seen.append(image.shape[0])
-        return nets.encode(params, image, proprio)
-
+    counting, seen = _counting(nets)
     params = nets.init(jax.random.PRNGKey(0))
     target = jax.tree.map(lambda x: x * 0.9, params)
     batch = _tiny_batch()
     bidal = AGENTS[agent].family is ddpg.BIDAL
-    loss, _ = losses.make_losses(dataclasses.replace(nets, encode=encode), cfg, bidal).representation(
+    loss, _ = losses.make_losses(counting, cfg, bidal).representation(
         params, params, target, batch)
     assert seen == frames
     if not bidal:
@@ -162,3 +169,33 @@ def test_the_online_encoder_reads_the_next_frame_only_for_bidals_models(agent, f
         y = np.clip(np.asarray(batch["reward"]) + 0.9 * np.asarray(nq), -10.0, 0.0)
         q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
         np.testing.assert_allclose(float(loss), np.mean((q - y) ** 2), rtol=1e-5)
+
+
+@pytest.mark.parametrize("agent, frames", [("multimodal_bidal", [6]), ("multimodal_baseline", [3, 3])])
+def test_the_online_target_encoder_reads_the_online_next_phi_and_no_target_encoder(agent, frames):
+    """`target_encoder` "online": the critic's target reads the online φ(s_{t+1}), stopped. BidAL encodes each frame
+    once (its f and g read that φ(s_{t+1}) already); the target encoder's parameters change nothing."""
+    cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, target_encoder="online")
+    nets = AGENTS[agent].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
+    counting, seen = _counting(nets)
+    params = nets.init(jax.random.PRNGKey(0))
+    target = jax.tree.map(lambda x: x * 0.9, params)
+    other = {**target, "encoder": jax.tree.map(lambda x: x * -3.0, params["encoder"])}
+    batch, bidal = _tiny_batch(), AGENTS[agent].family is ddpg.BIDAL
+    loss = losses.make_losses(counting, cfg, bidal).representation
+    value, _ = loss(params, params, target, batch)
+    assert seen == frames
+    assert float(loss(params, params, other, batch)[0]) == pytest.approx(float(value), rel=1e-6)
+
+    nphi = nets.encode(params["encoder"], batch["next_image"], batch["next_proprio"])
+    nq = nets.critic(target["critic"], nphi, nets.actor(target["actor"], nphi, batch["goal"]), batch["goal"])
+    phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
+    reward = np.asarray(batch["reward"])
+    if bidal:
+        pred = nets.forward(params["forward"], phi, batch["action"])
+        reward = reward - 0.15 * np.sum((np.asarray(pred) - np.asarray(nphi)) ** 2, axis=-1)
+    floor = losses.min_reward(0.3 if bidal else 0.0, 8) / 0.1
+    y = np.clip(reward + 0.9 * np.asarray(nq), floor, 0.0)
+    q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
+    critic = float(loss(params, params, target, batch)[1]["critic_loss"])
+    np.testing.assert_allclose(critic, np.mean((q - y) ** 2), rtol=1e-5)

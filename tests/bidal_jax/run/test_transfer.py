@@ -179,7 +179,8 @@ def test_a_transfer_run_recorded_before_init_normaliser_inherited(source):
     assert Config.from_dict(old, "old").run.init_normaliser == "inherit"
     assert Config.from_dict({**old, "run": {"env": NO_QDOT}}, "scratch").run.init_normaliser == "fresh"
     today = resolve({"env": NO_QDOT, "init_from": source[1]})
-    assert grid.config_changes(old, today) == "config differs: init_normaliser inherit → fresh"
+    assert grid.config_changes(old, today) == ("config differs: init_normaliser inherit → fresh, "
+                                               "target_encoder target → online")
 
 
 def test_the_transferred_run_trains_without_the_sources_buffer_and_records_its_source(transferred, source):
