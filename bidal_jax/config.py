@@ -275,7 +275,11 @@ def merged(preset: dict[str, dict[str, Any]], more: dict[str, dict[str, Any]]) -
 # Keys: "run", "train", "network"; values: field -> value.
 ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 40}},
-    "ur5_reach": {"run": {"epochs": 15}},
+    # the main command's task: one cycle of 160 envs per epoch (the default's 16 × 10 episodes and 400 updates), whose
+    # epoch steps the physics 100 times in a row instead of 550 (evaluation: 160 episodes in the cycles' scan), and
+    # learns as fast (docs/results.md, "Learning parity of the speed levers")
+    "ur5_reach": {"run": {"epochs": 15}, "train": {"num_envs": 160, "cycles_per_epoch": 1, "updates_per_cycle": 400,
+                                                   "buffer_episodes": 4000, "eval_envs": 160}},
     # the NICOL tasks are sized for one GPU: many parallel envs, big batches and many gradient updates, which cost
     # little beside the physics there; the same for every agent of a task (equal budgets). nicol_slide: one cycle
     # of 2,560 envs and 1,600 updates per epoch (128,000 env steps, one update per 80), since one wide cycle costs
@@ -285,7 +289,9 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "nicol_slide": gpu_preset(30, 2560, 1, 1600),
     # nicol_lift and its reduced variant (the transfer target): 6,400 updates per epoch (one per 32 env steps), since
     # with 1,600 proprio_baseline (5 seeds) reached what sliding alone can score (0.125) only by epoch 53 instead of
-    # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting")
+    # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting"); nor do a quarter as many of
+    # batch 8,192, the same samples: their epochs are shorter, but they learn less per epoch (docs/results.md,
+    # "Learning parity of the speed levers")
     # they train under HER's pick-and-place protocol: half of the training episodes start with the cube held
     **{name: merged(gpu_preset(25, 2048, 2, 3200), {"train": {"exploration_starts": LIFT_HELD_STARTS}})
        for name in ("nicol_lift", "nicol_lift_reduced")},
