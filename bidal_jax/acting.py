@@ -153,9 +153,19 @@ def states_at(env, starts: Starts):
     state = jax.vmap(traced_once(env.reset))(starts.reset)
     if starts.eased is None:
         return state
-    eased = jax.vmap(traced_once(env.exploration_reset))(starts.eased)
-    pick = starts.pick
-    return jax.tree.map(lambda e, s: jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s), eased, state)
+    return picked(starts.pick, jax.vmap(traced_once(env.exploration_reset))(starts.eased), state)
+
+
+def picked(pick: jax.Array, eased: Any, state: Any) -> Any:
+    """The states [n] of `eased` where `pick` [n] holds, else of `state`. A leaf without the envs' axis (MuJoCo Warp's
+    data holds empty arrays that all its worlds share) is the same in either and is kept."""
+
+    def leaf(e: jax.Array, s: jax.Array) -> jax.Array:
+        if s.shape[:1] != pick.shape:
+            return s
+        return jnp.where(pick.reshape((-1,) + (1,) * (s.ndim - 1)), e, s)
+
+    return jax.tree.map(leaf, eased, state)
 
 
 def _no_record(step: Step) -> None:

@@ -217,10 +217,14 @@ class Checkpoints:
     """The run's checkpoints, a callback of the loop: `checkpoints(e, state, row, last)` after epoch `e` saves one every
     `checkpoint_every` epochs, written while the next epochs train (`checkpoint.save_in_background`), and the run's
     `last` epoch on disk before the loop ends. `saved`: the epoch of the last checkpoint on disk, which the error lines
-    name (`last_good`); `size`: what one needs on the disk, as the disk errors say it."""
+    name (`last_good`); `size`: what one needs on the disk, as the disk errors say it. `background` False saves each
+    in place before the next epoch: MuJoCo Warp captures its solver's CUDA graphs on the stream the epoch runs on, and
+    a save's transfers from another thread during that capture make it fail ("capturing stream has unjoined work")."""
 
-    def __init__(self, ckpt_dir: str, cfg: dict, shards: int, every: int, saved: int | None, size: str):
+    def __init__(self, ckpt_dir: str, cfg: dict, shards: int, every: int, saved: int | None, size: str,
+                 background: bool = True):
         self.dir, self.cfg, self.shards, self.every, self.saved, self.size = ckpt_dir, cfg, shards, every, saved, size
+        self.background = background
         self.pending: checkpoint.Pending | None = None  # the checkpoint being written while the next epochs train
         self.manager = checkpoint.manager(ckpt_dir)
 
@@ -242,7 +246,7 @@ class Checkpoints:
             return
         self.finish()
         with rundir.disk_errors(f"saving checkpoint {e} in {self.dir} (needs about {self.size})", self.last_good()):
-            if last:  # the run ends here: on disk before it does
+            if last or not self.background:  # the run ends here: on disk before it does
                 checkpoint.save(self.manager, e, state, self.cfg, row["eval_success"], self.shards)
                 self.saved = e
             else:
@@ -315,7 +319,8 @@ def train(
                 os.makedirs(run.run_dir, exist_ok=True)
                 write_atomic(os.path.join(run.run_dir, "config.json"), json.dumps(cfg, indent=2))
             log = MetricsLog(run.run_dir, resume_epoch=start_epoch if resume else None, writes=main)
-            checkpoints = Checkpoints(ckpt_dir, cfg, shards, run.checkpoint_every, saved, size)
+            checkpoints = Checkpoints(ckpt_dir, cfg, shards, run.checkpoint_every, saved, size,
+                                      background=env.backend != "warp")
         # the loop's callbacks after each epoch: the metrics writer with its row, then (unless the run diverged) the
         # checkpoints with its state
         progress = metrics_writer(log, run.run_dir, checkpoints)

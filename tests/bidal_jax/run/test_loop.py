@@ -263,3 +263,19 @@ def test_a_new_run_compiles_the_physics_kernels_and_the_saves_beside_the_epoch(t
     assert run.main([*TINY, "--epochs", "1", "--run-dir", str(tmp_path / "run")]) == 0
     assert [what for what, _ in calls] == ["saves", "physics"]
     assert all(thread != threading.main_thread().name for _, thread in calls)
+
+
+@pytest.mark.parametrize("background", [True, False])
+def test_checkpoints_are_written_beside_the_next_epochs_unless_warp_steps_them(tmp_path, monkeypatch, background):
+    """`loop.Checkpoints`: a save in a thread while the next epochs train, or (MuJoCo Warp's physics, whose CUDA graph
+    capture a save's transfers from another thread break) in place, on disk before the next epoch."""
+    calls = []
+    monkeypatch.setattr(loop.checkpoint, "save", lambda mngr, e, *a: calls.append(("in place", e)))
+    monkeypatch.setattr(loop.checkpoint, "save_in_background",
+                        lambda mngr, e, *a: calls.append(("thread", e)) or loop.checkpoint.Pending(e))
+    checkpoints = loop.Checkpoints(str(tmp_path / "checkpoints"), {}, 1, 2, None, "1 MB", background=background)
+    for e in (1, 2, 3):
+        checkpoints(e, None, {"eval_success": 0.5}, last=e == 3)
+    assert calls == [("thread" if background else "in place", 2), ("in place", 3)]
+    assert checkpoints.saved == 3
+    checkpoints.close()
