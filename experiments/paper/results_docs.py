@@ -157,6 +157,23 @@ def parity_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     return report.markdown_table(["task, agent", "convs", "epochs", "AUC per seed", "mean"], rows)
 
 
+def lever_table(root: str, runs: Sequence[Sequence[str]]) -> str:
+    """Per [task and agent, lever, path before, path after] (run folders or sweeps): each seed's AUC over the epochs
+    both reached, before and after, and the difference of the means with Welch's 95 % interval; a lever keeps parity
+    where the interval holds 0 or lies above it."""
+    rows = []
+    for task, lever, before, after in runs:
+        a, b = curve_of(os.path.join(root, before), "before"), curve_of(os.path.join(root, after), "after")
+        n = min(len(a.epoch), len(b.epoch))
+        auc_a, auc_b = a.success[:n].mean(axis=0), b.success[:n].mean(axis=0)
+        diff, low, high = stats.welch_interval(auc_b, auc_a)
+        rows.append([task, lever, str(n), ", ".join(f"{v:.3f}" for v in auc_a), ", ".join(f"{v:.3f}" for v in auc_b),
+                     f"{diff:+.3f} {stats.interval_text(low, high)}", "yes" if low <= 0 <= high or low > 0 else "no"])
+    head = ["task, agent", "change", "epochs", "AUC per seed before", "AUC per seed after",
+            "difference [95 % interval]", "parity"]
+    return report.markdown_table(head, rows)
+
+
 def noise_table(root: str, runs: str) -> str:
     """Table II: per κ, each agent's final success over the paper's last N epochs beside the paper's."""
     found, _ = protocol.load_noise_curves(os.path.join(root, runs))
@@ -205,7 +222,7 @@ def resumed_table(root: str, runs: str) -> str:
 
 TABLES: dict[str, Callable[[str, object], str]] = {
     "epochs": epochs_table, "curves": curves_table, "pilots": pilots_table, "lambda": lambda_table,
-    "lift": lift_table, "parity": parity_table, "noise": noise_table, "transfer": transfer_table,
+    "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table, "transfer": transfer_table,
     "resumed": resumed_table,
 }
 
