@@ -34,6 +34,7 @@ import dataclasses
 import os
 import shutil
 import threading
+import time
 import zlib
 from typing import Any
 
@@ -55,6 +56,8 @@ BEST_METRIC = "eval_success"
 ARRAY_ITEMS = ("state", "buffer")
 # seconds to wait for each of the threads of a failed save before deleting what it wrote
 SAVE_THREADS_TIMEOUT = 30.0
+# seconds a failed save's directory must stay gone after its removal (`remove_failed`)
+SETTLE_SECONDS = 1.0
 
 
 def _handlers(partial: bool = False) -> dict[str, ocp.CheckpointHandler]:
@@ -199,7 +202,7 @@ def save(
         for thread in set(threading.enumerate()) - running:
             thread.join(timeout=SAVE_THREADS_TIMEOUT)
         if multihost.is_main():
-            remove_unfinished(str(mngr.directory), step)
+            remove_failed(str(mngr.directory), step)
         raise
 
 
@@ -290,6 +293,20 @@ def remove_unfinished(directory: str, step: int) -> None:
     for name in os.listdir(directory) if os.path.isdir(directory) else []:
         if name.startswith(prefix):
             shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
+
+
+def remove_failed(directory: str, step: int, settle: float = SETTLE_SECONDS,
+                  timeout: float = SAVE_THREADS_TIMEOUT) -> None:
+    """`remove_unfinished` of a failed save, again whenever its directory comes back, until it has stayed gone for
+    `settle` seconds (at most `timeout`): the writes of its other items already queued in TensorStore's own threads,
+    which `threading` does not list, may still create files in it after a first removal."""
+    prefix = f"{step}{ocp.path.step.TMP_DIR_SUFFIX}"
+    start = gone_since = time.monotonic()
+    while time.monotonic() - gone_since < settle and time.monotonic() - start < timeout:
+        if os.path.isdir(directory) and any(name.startswith(prefix) for name in os.listdir(directory)):
+            remove_unfinished(directory, step)
+            gone_since = time.monotonic()
+        time.sleep(0.02)
 
 
 def steps(directory: str) -> list[int]:

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections import namedtuple
 
 import jax
@@ -219,3 +220,21 @@ def test_a_save_in_place_that_fails_ends_the_run_before_the_next_epoch(tmp_path,
     assert line.startswith(f"error: no space left on device while saving checkpoint 2 in {run_dir / 'checkpoints'}")
     with open(run_dir / "metrics.csv") as f:
         assert [row["epoch"] for row in csv.DictReader(f)] == ["1", "2"]  # a save in the background: 3 rows
+
+
+def test_a_failed_saves_directory_written_again_after_its_removal_is_removed_again(tmp_path):
+    """`checkpoint.remove_failed`: a write that lands after the first removal (TensorStore's threads finishing the
+    save's other items) makes the directory come back; it is removed again, and checkpoint 1 is left alone."""
+    unfinished = tmp_path / f"2{ocp.path.step.TMP_DIR_SUFFIX}"
+    (tmp_path / "1").mkdir()
+    unfinished.mkdir()
+
+    def late_write():
+        time.sleep(0.2)
+        (unfinished / "state").mkdir(parents=True)
+
+    writer = threading.Thread(target=late_write)
+    writer.start()
+    checkpoint.remove_failed(str(tmp_path), 2, settle=0.5, timeout=10)
+    writer.join()
+    assert sorted(os.listdir(tmp_path)) == ["1"]
