@@ -246,7 +246,7 @@ class Checkpoints:
             return
         self.finish()
         with rundir.disk_errors(f"saving checkpoint {e} in {self.dir} (needs about {self.size})", self.last_good()):
-            if last or not self.background:  # the run ends here: on disk before it does
+            if last or not self.background:  # on disk before the run ends, or before its next epoch
                 checkpoint.save(self.manager, e, state, self.cfg, row["eval_success"], self.shards)
                 self.saved = e
             else:
