@@ -71,3 +71,25 @@ def test_check_fails_until_the_command_has_written_the_file(tmp_path, monkeypatc
     (tmp_path / "results" / "x" / "figures.json").write_text("[{")
     assert results_docs.main([]) == 2
     assert capsys.readouterr().err.startswith("error: ")
+
+
+def _sweep(path, seeds_by_epoch):
+    """A sweep's JSON lines (`experiments.bench.sweep --out`) with these per-seed eval successes, epoch by epoch."""
+    with open(path, "w", encoding="utf-8") as f:
+        for epoch, seeds in enumerate(seeds_by_epoch, 1):
+            f.write(json.dumps({"epoch": epoch, "env_steps_per_seed": 1000 * epoch, "process_seconds": epoch,
+                                "eval_success_seeds": seeds}) + "\n")
+
+
+def test_a_lever_keeps_parity_unless_its_interval_lies_below_zero(tmp_path):
+    """`levers` table: AUC per seed over the epochs both runs reached (the longer run's last epoch left out), the
+    difference after − before with its interval, and "no" only where the whole interval is below 0."""
+    _sweep(tmp_path / "before.jsonl", [[0.2, 0.3, 0.4], [0.6, 0.7, 0.8], [1.0, 1.0, 1.0]])
+    _sweep(tmp_path / "same.jsonl", [[0.3, 0.2, 0.4], [0.7, 0.8, 0.6]])
+    _sweep(tmp_path / "worse.jsonl", [[0.0, 0.1, 0.0], [0.1, 0.2, 0.1]])
+    table = results_docs.lever_table(str(tmp_path), [["task", "same", "before.jsonl", "same.jsonl"],
+                                                     ["task", "worse", "before.jsonl", "worse.jsonl"]])
+    same, worse = table.splitlines()[2:]
+    assert same.startswith("| task | same | 2 | 0.400, 0.500, 0.600 | 0.500, 0.500, 0.500 | +0.000 [")
+    assert same.endswith("| yes |")
+    assert "| -0.417 [" in worse and worse.endswith("| no |")
