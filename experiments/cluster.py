@@ -58,6 +58,7 @@ from typing import Any, Callable, Iterator, Sequence
 import experiments
 from bidal_jax.config import ConfigError
 from bidal_jax.run import rundir
+from bidal_jax.run.runfiles import first_line
 from experiments import report
 
 EXIT_LOST = 5  # a cell's worker died more often than --retries allows
@@ -203,11 +204,6 @@ def run_cell(work: Callable[[Any], tuple[int, str | None]], payload: Any,
     except Exception as err:
         code, why = EXIT_CRASHED, f"error: {type(err).__name__}: {first_line(err)}"
     return code, time.perf_counter() - began, why
-
-
-def first_line(err: BaseException) -> str:
-    """The first non-empty line of an error's message (its type's name for an empty one)."""
-    return next((line.strip() for line in str(err).splitlines() if line.strip()), type(err).__name__)
 
 
 def efficiency_line(seconds: dict[str, float], wall: float) -> str:

@@ -166,8 +166,7 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
         except Exception as err:  # a program jax.export refuses: traced as before
             if memory.exhausted(err):
                 raise
-            first = (str(err).splitlines() or [""])[0][:120]
-            log(f"the epoch is traced in this process ({type(err).__name__}: {first})")
+            log(f"the epoch is traced in this process ({type(err).__name__}: {runfiles.first_line(err, 120)})")
     if compiled is None:
         compiled = programs.epoch.lower(state).compile()
         stats = memory.analysis(compiled)

@@ -23,6 +23,7 @@ import jax
 import numpy as np
 
 from bidal_jax.config import ConfigError
+from bidal_jax.run.runfiles import first_line
 
 # share of the device's memory the training state, or the whole epoch program, may take (the rest: the runtime's
 # own buffers, a checkpoint's copy, fragmentation)
@@ -92,15 +93,10 @@ def exhausted(err: BaseException) -> bool:
     return isinstance(err, jax.errors.JaxRuntimeError) and any(word in str(err) for word in EXHAUSTED)
 
 
-def _first_line(err: BaseException) -> str:
-    line = next((s.strip() for s in str(err).splitlines() if s.strip()), type(err).__name__)
-    return line if len(line) <= 160 else line[:157] + "..."
-
-
 def ran_out(doing: str, err: BaseException, after: str) -> OutOfMemory:
     """The `OutOfMemory` of `err` (`exhausted`): "out of device memory while DOING (XLA's first line); use ...;
     AFTER" (e.g. the last good checkpoint)."""
-    return OutOfMemory(f"out of device memory while {doing} ({_first_line(err)}); {REDUCE}; {after}")
+    return OutOfMemory(f"out of device memory while {doing} ({first_line(err, 160)}); {REDUCE}; {after}")
 
 
 @contextlib.contextmanager

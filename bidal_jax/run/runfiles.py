@@ -117,6 +117,13 @@ def check_output_dir(directory: str, flag: str) -> None:
         raise ConfigError(f"{flag}: the folder {directory} is not writable (permission denied)")
 
 
+def first_line(err: BaseException, limit: int | None = None) -> str:
+    """The first non-empty line of an error's message (its type's name for an empty one), cut to `limit`
+    characters, the last three "...", where it is longer."""
+    line = next((s.strip() for s in str(err).splitlines() if s.strip()), type(err).__name__)
+    return line if limit is None or len(line) <= limit else line[: limit - 3] + "..."
+
+
 def close_quietly(*closers: Callable[[], Any]) -> None:
     """Call every closer, dropping their errors: what an error on its way out leaves open is closed without
     a second error (e.g. the disk still full while TensorBoard flushes) masking the first."""
