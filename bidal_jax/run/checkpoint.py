@@ -287,12 +287,14 @@ def save_in_background(
     return pending
 
 
-def remove_unfinished(directory: str, step: int) -> None:
-    """Delete the unfinished save of `step` (Orbax's `<step>.orbax-checkpoint-tmp*` directories) in `directory`."""
+def remove_unfinished(directory: str, step: int) -> bool:
+    """Delete the unfinished save of `step` (Orbax's `<step>.orbax-checkpoint-tmp*` directories) in `directory`;
+    whether there was one."""
     prefix = f"{step}{ocp.path.step.TMP_DIR_SUFFIX}"
-    for name in os.listdir(directory) if os.path.isdir(directory) else []:
-        if name.startswith(prefix):
-            shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
+    found = [name for name in (os.listdir(directory) if os.path.isdir(directory) else []) if name.startswith(prefix)]
+    for name in found:
+        shutil.rmtree(os.path.join(directory, name), ignore_errors=True)
+    return bool(found)
 
 
 def remove_failed(directory: str, step: int, settle: float = SETTLE_SECONDS,
@@ -300,11 +302,9 @@ def remove_failed(directory: str, step: int, settle: float = SETTLE_SECONDS,
     """`remove_unfinished` of a failed save, again whenever its directory comes back, until it has stayed gone for
     `settle` seconds (at most `timeout`): the writes of its other items already queued in TensorStore's own threads,
     which `threading` does not list, may still create files in it after a first removal."""
-    prefix = f"{step}{ocp.path.step.TMP_DIR_SUFFIX}"
     start = gone_since = time.monotonic()
     while time.monotonic() - gone_since < settle and time.monotonic() - start < timeout:
-        if os.path.isdir(directory) and any(name.startswith(prefix) for name in os.listdir(directory)):
-            remove_unfinished(directory, step)
+        if remove_unfinished(directory, step):
             gone_since = time.monotonic()
         time.sleep(0.02)
 
