@@ -346,11 +346,10 @@ class Config:
 def recorded(group: str, fields: Any) -> Any:
     """A config group's `fields` as a run recorded them (config.json, a checkpoint's), read as this version runs
     them: fields the record is older than take what its run did where that is not their default (a transfer run,
-    `init_from`, older than `init_normaliser` inherited its source's proprio normaliser; one older than `target_encoder`
-    read the target encoder), and a conv implementation
-    removed since (`REMOVED_CONV_IMPLS`) reads as "patch", which computes the same function of the same parameters,
-    so that its runs still resume, evaluate and report. Other fields newer than the record take their defaults, as
-    they did."""
+    `init_from`, older than `init_normaliser` inherited its source's proprio normaliser; a run older than
+    `target_encoder` read the target encoder), and a conv implementation removed since (`REMOVED_CONV_IMPLS`) reads
+    as "patch", which computes the same function of the same parameters, so that its runs still resume, evaluate
+    and report. Other fields newer than the record take their defaults, as they did."""
     if not isinstance(fields, dict):
         return fields
     if group == "run" and fields.get("init_from") and "init_normaliser" not in fields:
