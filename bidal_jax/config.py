@@ -178,6 +178,14 @@ class TrainConfig:
         "(docs/deviations.md)",
         one_of(TARGET_ENCODERS),
     )
+    sample_run: int = doc(
+        1,
+        "consecutive steps of one episode per sampled run: a batch is batch_size / sample_run runs, whose "
+        "transitions share their frames, so an image update encodes 1 + 1/sample_run frames a transition instead "
+        "of 2; a run starts uniformly in [0, T - sample_run], so each episode's first and last sample_run - 1 "
+        "steps are drawn less often. 1: independent transitions, HER's draw (docs/deviations.md)",
+        POSITIVE_INT,
+    )
     forward_weight: float = doc(
         1.0, "weight of the forward-model loss (Eq. 3) in the representation loss",
         NON_NEGATIVE,

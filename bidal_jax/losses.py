@@ -79,28 +79,35 @@ def make_losses(networks: Networks, config, bidal: bool) -> Losses:
     inverse models and the intrinsic reward."""
     r_min = min_reward(config.intrinsic_lambda if bidal else 0.0, networks.latent_size)
 
-    def encode_pair(enc_params, batch):
-        """φ(s_t) and φ(s_{t+1}) in one encoder pass."""
-        images = None
-        if "image" in batch:
-            images = jnp.concatenate([batch["image"], batch["next_image"]])
-        phis = networks.encode(enc_params, images, jnp.concatenate([batch["proprio"], batch["next_proprio"]]))
-        return jnp.split(phis, 2)
+    def encode_runs(enc_params, batch, steps: slice) -> jax.Array:
+        """φ of the frames `steps` of each sampled run (`replay.sample`: a run's transitions share their frames)
+        in one encoder pass: [runs, frames, latent]; slice(None) is every frame s_t ... s_{t+run}."""
+        runs = batch["frames"].shape[0] if "frames" in batch else None
+        proprio, next_proprio = (batch[k].reshape(runs or batch[k].shape[0], -1, batch[k].shape[-1])
+                                 for k in ("proprio", "next_proprio"))
+        proprio = jnp.concatenate([proprio, next_proprio[:, -1:]], axis=1)[:, steps]
+        images = batch["frames"][:, steps] if runs else None
+        phis = networks.encode(enc_params, None if images is None else images.reshape(-1, *images.shape[2:]),
+                               proprio.reshape(-1, proprio.shape[-1]))
+        return phis.reshape(*proprio.shape[:2], -1)
+
+    def per_transition(phis: jax.Array) -> jax.Array:
+        return phis.reshape(-1, phis.shape[-1])
 
     def representation(params, _, target_params, batch):
         chex.assert_rank([batch["proprio"], batch["goal"], batch["action"]], 2)
         chex.assert_rank(batch["reward"], 1)
-        if bidal:  # f and g (Eqs. 3 and 5) read the online φ(s_{t+1}); the critic alone needs φ(s_t) online
-            phi, next_phi = encode_pair(params.get("encoder"), batch)
+        # f and g (Eqs. 3 and 5) read the online φ(s_{t+1}), and so does the critic's target with the online
+        # encoder: one pass over each run's frames; otherwise the critic alone reads online φ, of s_t
+        if bidal or config.target_encoder == "online":
+            phis = encode_runs(params.get("encoder"), batch, slice(None))
+            phi, next_phi = per_transition(phis[:, :-1]), per_transition(phis[:, 1:])
         else:
-            phi = networks.encode(params.get("encoder"), batch.get("image"), batch["proprio"])
-        if config.target_encoder == "online":  # φ(s_{t+1}) of the online encoder, stopped: no second pass for BidAL
-            online = next_phi if bidal else networks.encode(params.get("encoder"), batch.get("next_image"),
-                                                            batch["next_proprio"])
-            target_next_phi = jax.lax.stop_gradient(online)
+            phi = per_transition(encode_runs(params.get("encoder"), batch, slice(None, -1)))
+        if config.target_encoder == "online":
+            target_next_phi = jax.lax.stop_gradient(next_phi)
         else:
-            target_next_phi = networks.encode(target_params.get("encoder"), batch.get("next_image"),
-                                              batch["next_proprio"])
+            target_next_phi = per_transition(encode_runs(target_params.get("encoder"), batch, slice(1, None)))
         next_action = networks.actor(target_params["actor"], target_next_phi, batch["goal"])
         next_q = networks.critic(target_params["critic"], target_next_phi, next_action, batch["goal"])
         reward = batch["reward"]

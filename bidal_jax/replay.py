@@ -92,16 +92,19 @@ def to_episodes(records: tuple, final_obs: dict, last_obs: dict, noisy: jax.Arra
     return episodes
 
 
-def _draw(episodes: dict, key: jax.Array, n: int, n_episodes: jax.Array | int, future_p: float):
-    """n transitions (episode, step t) drawn uniformly from the first `n_episodes` episodes, and
-    their goals: with probability `future_p` the achieved goal of a later step t' ∈ [t+1, T]
-    (HER `future`), else the episode's desired goal. Returns (ep, t, t', relabelled, goal)."""
+def _draw(episodes: dict, key: jax.Array, n: int, n_episodes: jax.Array | int, future_p: float, run: int = 1):
+    """n transitions (episode, step t) drawn as n / `run` runs of `run` consecutive steps of one episode, the
+    episodes uniform over the first `n_episodes` and each run's first step uniform over [0, T - run] (with run 1:
+    uniform transitions, HER's draw), and their goals, each its own: with probability `future_p` the achieved goal
+    of a later step t' ∈ [t+1, T] (HER `future`), else the episode's desired goal. Returns (ep, t, t', relabelled,
+    goal), the transitions run after run."""
     horizon = episodes["action"].shape[1]
     # one draw of 32 random bits per choice, reduced modulo its range (a bias below range / 2^32): far less code
     # than three `jax.random.randint`s of two draws each, in a draw made in every update
     bits = jax.random.bits(key, (4, n), jnp.uint32)
-    ep = (bits[0] % jnp.asarray(n_episodes, jnp.uint32)).astype(jnp.int32)
-    t = (bits[1] % horizon).astype(jnp.int32)
+    ep = jnp.repeat((bits[0, ::run] % jnp.asarray(n_episodes, jnp.uint32)).astype(jnp.int32), run)
+    start = (bits[1, ::run] % (horizon - run + 1)).astype(jnp.int32)
+    t = (start[:, None] + jnp.arange(run, dtype=jnp.int32)).reshape(n)
     future_t = t + 1 + (bits[2] % (horizon - t).astype(jnp.uint32)).astype(jnp.int32)
     relabel = (bits[3] >> 8).astype(jnp.float32) * 2.0**-24 < future_p  # uniform in [0, 1) on a 2^-24 grid
     goal = jnp.where(relabel[:, None], episodes["achieved_goal"][ep, future_t], episodes["desired_goal"][ep])
@@ -120,10 +123,15 @@ def sample(
     batch_size: int,
     future_p: float,
     compute_reward: Callable[[jax.Array, jax.Array], jax.Array],
+    run: int = 1,
 ) -> dict[str, jax.Array]:
-    """A batch of HER-relabelled transitions (s_t, a_t, s_{t+1}, g, r_e) and their indices."""
+    """A batch of HER-relabelled transitions (s_t, a_t, s_{t+1}, g, r_e) and their indices, drawn as
+    batch_size / `run` runs of `run` consecutive steps (`_draw`). Image agents' frames come once per run:
+    "frames" [batch_size / run, run + 1, H, W, 1], the run's s_t ... s_{t+run}, which its transitions share
+    (`TrainConfig.sample_run`; with run 1, each transition's s_t and s_{t+1})."""
+    chex.assert_equal(batch_size % run, 0)
     eps = state.episodes
-    ep, t, future_t, relabel, goal = _draw(eps, key, batch_size, jnp.maximum(state.size, 1), future_p)
+    ep, t, future_t, relabel, goal = _draw(eps, key, batch_size, jnp.maximum(state.size, 1), future_p, run)
     next_ag = eps["achieved_goal"][ep, t + 1]
     batch = {
         "proprio": eps["proprio"][ep, t],
@@ -136,8 +144,8 @@ def sample(
         "future_t": jnp.where(relabel, future_t, -1),
     }
     if "image" in eps:
-        batch["image"] = eps["image"][ep, t]
-        batch["next_image"] = eps["image"][ep, t + 1]
+        steps = t[::run, None] + jnp.arange(run + 1, dtype=jnp.int32)
+        batch["frames"] = eps["image"][ep[::run, None], steps]
     return batch
 
 

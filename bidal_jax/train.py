@@ -155,7 +155,8 @@ def make_learner(env, config: Config, shards: Shards) -> Learner:
         """One gradient step of each of the family's `update_order` steps (DDPG + BidAL: the representation
         group, encoder, critic, f and g, then the actor), each on the parameters the earlier ones left."""
         with jax.named_scope(REPLAY_SCOPE):
-            batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward)
+            batch = replay.sample(ts.buffer, shards.own_key(key), n_batch, future_p, env.compute_reward,
+                                   train.sample_run)
             batch = normalizer.normalize_batch(batch, ts.proprio_norm, ts.goal_norm, train.clip_obs)
         params, opt_state, metrics = ts.params, {}, {}
         for step in steps:

@@ -52,14 +52,15 @@ def device_layout(
 ) -> tuple[list, int]:
     """(the devices of a run, its env shards k): `seed_devices` hold the seeds, and each seed
     device's process lends it, of the devices left over, the most (k - 1, k ≤ `max_shards`)
-    such that k divides the envs, evaluation envs and batch (k = 1 with observation noise, see
+    such that k divides the envs, evaluation envs and the batch's runs (k = 1 with observation noise, see
     `make_train`). The devices come seed device by seed device, each followed by its shards'
     others. One process with 4 devices, 16 envs, `max_shards` 4: 1 seed on 4 × 4 shards,
     2 seeds on 2 × 2, 4 on 4 × 1; with 6 envs, 1 seed on 2 × 2."""
     owned = _by_process(devices)
     per_process = len(seed_devices(seeds, devices)) // len(owned)
     spare = min(min(len(own) for own in owned) // per_process, max_shards)
-    divisor = 1 if config.noise_segments else math.gcd(config.num_envs, config.eval_envs, config.batch_size)
+    divisor = 1 if config.noise_segments else math.gcd(config.num_envs, config.eval_envs,
+                                                             config.batch_size // config.sample_run)
     shards = max(k for k in range(1, spare + 1) if divisor % k == 0)
     return [d for own in owned for d in own[: per_process * shards]], shards
 

@@ -62,13 +62,16 @@ def check(config: Config, *, env_names: Iterable[str]) -> None:
             f"--buffer-episodes {train.buffer_episodes}: must be a multiple of --num-envs {train.num_envs} "
             "(whole rollouts are written at once)"
         )
+    if train.batch_size % train.sample_run:
+        raise ConfigError(f"--sample-run {train.sample_run}: must divide --batch-size {train.batch_size} "
+                          "(a batch is whole runs)")
     if train.obs_noise > 0 and not train.noise_segments.strip():
         raise ConfigError(f"--obs-noise {train.obs_noise}: needs --noise-segments (e.g. ee_pos,ee_rot,obj_pos)")
 
 
 def check_env_support(train: TrainConfig, env: Any) -> None:
     """Raise `ConfigError` when `train` asks `env` for something it lacks (exploration starts,
-    the proprio segments that get noise, a noisy achieved goal)."""
+    the proprio segments that get noise, a noisy achieved goal, runs longer than its episodes)."""
     unknown = [n for n in noise.parse_segments(train.noise_segments) if n not in env.observation_spec.segment_names]
     if unknown:
         raise ConfigError(
@@ -79,6 +82,9 @@ def check_env_support(train: TrainConfig, env: Any) -> None:
         noise.noise_map(env.observation_spec, noise.parse_segments(train.noise_segments), train.noise_variant)
     except ValueError as err:
         raise ConfigError(f"{option('noise_variant')} {train.noise_variant}: {err}") from err
+    if train.sample_run > env.episode_length:
+        raise ConfigError(f"{option('sample_run')} {train.sample_run}: env {env.name}'s episodes have "
+                          f"{env.episode_length} steps; must be at most that")
     if train.exploration_starts > 0 and not env.has_exploration_start:
         raise ConfigError(
             f"{option('exploration_starts')} {train.exploration_starts}: env {env.name} has no exploration start; "

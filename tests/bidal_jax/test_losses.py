@@ -72,8 +72,8 @@ def _tiny_batch(b=3, d=4, g=2, a=2, image=True):
         "reward": jnp.array([-1.0, 0.0, -1.0]),
     }
     if image:
-        batch["image"] = jnp.asarray(rng.integers(0, 255, size=(b, 42, 42, 1)), jnp.uint8)
-        batch["next_image"] = jnp.asarray(rng.integers(0, 255, size=(b, 42, 42, 1)), jnp.uint8)
+        # each transition its own run: its s_t and s_{t+1} (replay.sample's "frames" with sample_run 1)
+        batch["frames"] = jnp.asarray(rng.integers(0, 255, size=(b, 2, 42, 42, 1)), jnp.uint8)
     return batch
 
 
@@ -99,9 +99,9 @@ def test_representation_loss_matches_a_hand_composition():
     batch = _tiny_batch()
     loss, aux = losses.make_losses(nets, cfg, bidal=True).representation(params, params, target, batch)
 
-    phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
-    nphi = nets.encode(params["encoder"], batch["next_image"], batch["next_proprio"])
-    tnphi = nets.encode(target["encoder"], batch["next_image"], batch["next_proprio"])
+    phi = nets.encode(params["encoder"], batch["frames"][:, 0], batch["proprio"])
+    nphi = nets.encode(params["encoder"], batch["frames"][:, 1], batch["next_proprio"])
+    tnphi = nets.encode(target["encoder"], batch["frames"][:, 1], batch["next_proprio"])
     pred = nets.forward(params["forward"], phi, batch["action"])
     r_i = -0.15 * np.sum((np.asarray(pred) - np.asarray(nphi)) ** 2, axis=-1)
     nq = nets.critic(target["critic"], tnphi, nets.actor(target["actor"], tnphi, batch["goal"]), batch["goal"])
@@ -130,7 +130,7 @@ def test_representation_loss_floors_the_target_at_the_agents_r_min(agent, floor)
     batch = _tiny_batch()
     loss = losses.make_losses(nets, cfg, bidal=AGENTS[agent].family is ddpg.BIDAL).representation
     _, aux = loss(params, params, target, batch)
-    phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
+    phi = nets.encode(params["encoder"], batch["frames"][:, 0], batch["proprio"])
     q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
     np.testing.assert_allclose(float(aux["critic_loss"]), np.mean((q - floor) ** 2), rtol=1e-5)
 
@@ -163,18 +163,19 @@ def test_the_online_encoder_reads_the_next_frame_only_for_bidals_models(agent, f
         params, params, target, batch)
     assert seen == frames
     if not bidal:
-        phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
-        tnphi = nets.encode(target["encoder"], batch["next_image"], batch["next_proprio"])
+        phi = nets.encode(params["encoder"], batch["frames"][:, 0], batch["proprio"])
+        tnphi = nets.encode(target["encoder"], batch["frames"][:, 1], batch["next_proprio"])
         nq = nets.critic(target["critic"], tnphi, nets.actor(target["actor"], tnphi, batch["goal"]), batch["goal"])
         y = np.clip(np.asarray(batch["reward"]) + 0.9 * np.asarray(nq), -10.0, 0.0)
         q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
         np.testing.assert_allclose(float(loss), np.mean((q - y) ** 2), rtol=1e-5)
 
 
-@pytest.mark.parametrize("agent, frames", [("multimodal_bidal", [6]), ("multimodal_baseline", [3, 3])])
-def test_the_online_target_encoder_reads_the_online_next_phi_and_no_target_encoder(agent, frames):
-    """`target_encoder` "online": the critic's target reads the online φ(s_{t+1}), stopped. BidAL encodes each frame
-    once (its f and g read that φ(s_{t+1}) already); the target encoder's parameters change nothing."""
+@pytest.mark.parametrize("agent", ["multimodal_bidal", "multimodal_baseline"])
+def test_the_online_target_encoder_reads_the_online_next_phi_and_no_target_encoder(agent):
+    """`target_encoder` "online": the critic's target reads the online φ(s_{t+1}), stopped: each frame is encoded
+    once, in one pass (BidAL's f and g read that φ(s_{t+1}) too); the target encoder's parameters change
+    nothing."""
     cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, target_encoder="online")
     nets = AGENTS[agent].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
     counting, seen = _counting(nets)
@@ -184,12 +185,12 @@ def test_the_online_target_encoder_reads_the_online_next_phi_and_no_target_encod
     batch, bidal = _tiny_batch(), AGENTS[agent].family is ddpg.BIDAL
     loss = losses.make_losses(counting, cfg, bidal).representation
     value, _ = loss(params, params, target, batch)
-    assert seen == frames
+    assert seen == [6]
     assert float(loss(params, params, other, batch)[0]) == pytest.approx(float(value), rel=1e-6)
 
-    nphi = nets.encode(params["encoder"], batch["next_image"], batch["next_proprio"])
+    nphi = nets.encode(params["encoder"], batch["frames"][:, 1], batch["next_proprio"])
     nq = nets.critic(target["critic"], nphi, nets.actor(target["actor"], nphi, batch["goal"]), batch["goal"])
-    phi = nets.encode(params["encoder"], batch["image"], batch["proprio"])
+    phi = nets.encode(params["encoder"], batch["frames"][:, 0], batch["proprio"])
     reward = np.asarray(batch["reward"])
     if bidal:
         pred = nets.forward(params["forward"], phi, batch["action"])
@@ -199,3 +200,31 @@ def test_the_online_target_encoder_reads_the_online_next_phi_and_no_target_encod
     q = np.asarray(nets.critic(params["critic"], phi, batch["action"], batch["goal"]))
     critic = float(loss(params, params, target, batch)[1]["critic_loss"])
     np.testing.assert_allclose(critic, np.mean((q - y) ** 2), rtol=1e-5)
+
+
+@pytest.mark.parametrize("agent, encoder, frames", [("multimodal_bidal", "online", [8]),
+                                                     ("multimodal_bidal", "target", [8, 6]),
+                                                     ("multimodal_baseline", "target", [6, 6])])
+def test_runs_that_share_frames_give_the_loss_and_gradients_of_their_transitions(agent, encoder, frames):
+    """Two runs of 3 consecutive transitions (`TrainConfig.sample_run` 3) encode their 8 frames once (the target
+    encoder their 6 next frames), and give the loss and gradients of the same 6 transitions with their own frames."""
+    rng = np.random.default_rng(3)
+    images = jnp.asarray(rng.integers(0, 255, size=(2, 4, 42, 42, 1)), jnp.uint8)
+    proprio = jnp.asarray(rng.normal(size=(2, 4, 4)), jnp.float32)
+    single = {**_tiny_batch(b=6), "reward": jnp.array([-1.0, 0.0, -1.0, -1.0, 0.0, 0.0])}
+    runs = {**single, "frames": images, "proprio": proprio[:, :3].reshape(6, 4),
+            "next_proprio": proprio[:, 1:].reshape(6, 4)}
+    single.update(frames=jnp.stack([images[:, :3], images[:, 1:]], axis=2).reshape(6, 2, 42, 42, 1),
+                  proprio=runs["proprio"], next_proprio=runs["next_proprio"])
+    cfg = TrainConfig(gamma=0.9, intrinsic_lambda=0.3, target_encoder=encoder)
+    nets = AGENTS[agent].networks(NetworkConfig(conv_channels=4, latent_size=8), 4, 2, 2, (42, 42, 1))
+    counting, seen = _counting(nets)
+    params = nets.init(jax.random.PRNGKey(0))
+    target = jax.tree.map(lambda x: x * 0.9, params)
+    loss = losses.make_losses(counting, cfg, AGENTS[agent].family is ddpg.BIDAL).representation
+    (value, aux), grads = jax.value_and_grad(loss, has_aux=True)(params, params, target, runs)
+    assert seen == frames
+    (expected, expected_aux), expected_grads = jax.value_and_grad(loss, has_aux=True)(params, params, target, single)
+    np.testing.assert_allclose(float(value), float(expected), rtol=1e-5)
+    np.testing.assert_allclose(aux["phi"], expected_aux["phi"], rtol=1e-5, atol=1e-6)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6), grads, expected_grads)

@@ -117,3 +117,21 @@ def test_draws_are_uniform_over_episodes_steps_and_later_steps():
     counts = np.bincount(future_t[first], minlength=T + 1)[1:]
     assert np.abs(counts / (first.sum() / T) - 1).max() < 0.1
     assert 0.79 < np.asarray(relabel).mean() < 0.81
+
+
+def test_runs_are_consecutive_steps_of_one_episode_and_share_their_frames():
+    """`run` 3: each run's transitions are steps t0, t0+1, t0+2 of one episode, t0 uniform over [0, T - 3]; its
+    frames are that episode's images at t0 ... t0+3; the goals are drawn per transition (some relabelled, some
+    not, within a run)."""
+    episodes = {**_episodes(8, 100), "image": (jnp.arange(8 * (T + 1), dtype=jnp.uint8).reshape(8, T + 1, 1, 1, 1))}
+    state = replay.insert(replay.init(8, jax.tree.map(lambda x: x[0], episodes)), episodes)
+    batch = jax.jit(replay.sample, static_argnums=(2, 3, 4, 5))(state, jax.random.PRNGKey(2), 3000, 0.8, _reward, 3)
+    ep, t = np.asarray(batch["episode"]).reshape(1000, 3), np.asarray(batch["t"]).reshape(1000, 3)
+    assert (ep == ep[:, :1]).all() and (t == t[:, :1] + np.arange(3)).all()
+    counts = np.bincount(t[:, 0], minlength=T - 2)
+    assert len(counts) == T - 2 and np.abs(counts / (1000 / (T - 2)) - 1).max() < 0.15
+    frames = np.asarray(batch["frames"])
+    assert frames.shape == (1000, 4, 1, 1, 1)
+    np.testing.assert_array_equal(frames[:, :, 0, 0, 0], ep[:, :1] * (T + 1) + t[:, :1] + np.arange(4))
+    relabelled = (np.asarray(batch["future_t"]) >= 0).reshape(1000, 3)
+    assert 0 < relabelled.all(axis=1).mean() < relabelled.any(axis=1).mean() < 1

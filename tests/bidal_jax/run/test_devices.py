@@ -60,6 +60,9 @@ def test_devices_the_seeds_leave_split_their_envs():
     assert device_layout(2, config, 2, two_hosts) == (two_hosts, 2)
     assert device_layout(1, config, 1, devices) == (devices[:1], 1)  # the default: no env shards
     assert device_layout(1, config, 2, devices) == (devices[:2], 2)
+    # each shard draws whole runs of transitions: 256 / 128 = 2 runs
+    assert device_layout(1, TrainConfig(num_envs=16, eval_envs=64, batch_size=256, sample_run=128), 4,
+                         devices) == (devices[:2], 2)
 
 
 @pytest.mark.slow
