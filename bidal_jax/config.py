@@ -57,7 +57,7 @@ def _name_list(v: str) -> bool:
     return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
 
 
-CONV_IMPLS = tuple(CONVS)  # NetworkConfig.conv_impl: "patch", "banded"
+CONV_IMPLS = tuple(CONVS)  # NetworkConfig.conv_impl: "patch", "banded", "toeplitz"
 # conv implementations of earlier versions, each the same function of the same parameters as "patch" (`recorded`)
 REMOVED_CONV_IMPLS = ("taps", "native", "stacked")
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
@@ -93,7 +93,8 @@ class NetworkConfig:
         "how the vision branch's convs are computed, the same function and parameters either way (so runs of "
         "either compare and resume alike): 'patch' (strided slices and one matmul: the fast form on a CPU) or "
         "'banded' (input rows times band matrices of the kernel: the fast form on a GPU, the NICOL presets'; "
-        "docs/results.md, 'Image updates')",
+        "docs/results.md, 'Image updates') or 'toeplitz' (banded, but a small layer, the last two of the default "
+        "strides, as one matmul of the whole frame by the conv's full matrix: no windows gathered)",
         one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(

@@ -95,6 +95,30 @@ def _patch_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, i
     return jnp.concatenate(taps, axis=-1) @ kernel.reshape(k * k * channels, features)
 
 
+TOEPLITZ_ENTRIES = 1 << 20  # `_toeplitz_conv`: a layer's whole-frame matrix up to this size is one dense matmul
+
+
+def _toeplitz_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int, int, int, int]) -> jax.Array:
+    """The same convolution as `_banded_conv`, where the layer is small enough: the whole frame x [B, H·W·C] times
+    the convolution's full (Toeplitz) matrix [H·W·C, out_h·out_w·F], whose entry ((h, w, c), (p, q, f)) is
+    kernel[dy, dx, c, f] where (h, w) is tap (dy, dx) of output (p, q) of the padded frame, else 0: one matmul, no
+    windows gathered and no padding copied. The matrix is built from the kernel and a constant 0/1 tensor of the
+    taps, so its gradient is the kernel's. Layers whose matrix has more than `TOEPLITZ_ENTRIES` entries (the first
+    two of the default strides: their zeros would cost more arithmetic than the band's) stay banded."""
+    batch, height, width, channels = x.shape
+    k, features = kernel.shape[0], kernel.shape[-1]
+    top, bottom, left, right = pads
+    out_h, out_w = (height + top + bottom - k) // stride + 1, (width + left + right - k) // stride + 1
+    if height * width * channels * out_h * out_w * features > TOEPLITZ_ENTRIES:
+        return _banded_conv(x, kernel, stride, pads)
+    rows = np.arange(height)[:, None, None] == stride * np.arange(out_h)[None, :, None] + np.arange(k) - top
+    cols = np.arange(width)[:, None, None] == stride * np.arange(out_w)[None, :, None] + np.arange(k) - left
+    taps = rows[:, None, :, None, :, None] & cols[None, :, None, :, None, :]  # [H, W, out_h, out_w, k, k]
+    matrix = jnp.einsum("hwpqyx,yxcf->hwcpqf", taps.astype(kernel.dtype), kernel)
+    y = x.reshape(batch, -1) @ matrix.reshape(height * width * channels, -1)
+    return y.reshape(batch, out_h, out_w, features)
+
+
 def _same_pads(height: int, width: int, k: int, stride: int) -> tuple[int, int, int, int]:
     """The zero rows and columns (top, bottom, left, right) that 'SAME' padding adds around a height × width frame
     so that a k×k convolution of `stride` gives ⌈height/stride⌉ × ⌈width/stride⌉ outputs, the odd one at the end
@@ -106,7 +130,8 @@ def _same_pads(height: int, width: int, k: int, stride: int) -> tuple[int, int, 
 
 # how a conv is computed (`NetworkConfig.conv_impl`): the same function of the same parameters either way, so a
 # checkpoint of one runs, resumes and compares under the other
-CONVS: dict[str, Callable[..., jax.Array]] = {"patch": _patch_conv, "banded": _banded_conv}
+CONVS: dict[str, Callable[..., jax.Array]] = {"patch": _patch_conv, "banded": _banded_conv,
+                                               "toeplitz": _toeplitz_conv}
 
 
 class PatchConv(nn.Module):
@@ -116,8 +141,9 @@ class PatchConv(nn.Module):
     Same result and parameter layout (kernel [k, k, C, F], bias [F]) as `nn.Conv`. `impl`
     (`NetworkConfig.conv_impl`, a key of `CONVS`) picks how it is computed: "patch" (`_patch_conv`: strided slices
     and one matmul, the fast form on a CPU, where XLA's convolution op is slow inside the training loop's
-    `lax.scan`) or "banded" (`_banded_conv`: whole input rows times band matrices of the kernel, the fast form on a
-    GPU; the GPU presets'; docs/results.md, "Image updates"). It computes in the dtype of `x` (float32 parameters
+    `lax.scan`), "banded" (`_banded_conv`: whole input rows times band matrices of the kernel, the fast form on a
+    GPU; the GPU presets'; docs/results.md, "Image updates") or "toeplitz" (`_toeplitz_conv`: a small layer as one
+    matmul of the whole frame by the conv's full matrix, the others banded). It computes in the dtype of `x` (float32 parameters
     cast to it): with bfloat16 input its matmuls and output are bfloat16 (`NetworkConfig.vision_dtype`).
     """
 
