@@ -259,9 +259,10 @@ def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cy
     """A NICOL task's preset, sized for one GPU: `epochs` epochs (the task's learning-curve budget,
     `experiments.paper.protocol.EPOCHS`) of `cycles_per_epoch` cycles of `num_envs` envs and
     `updates_per_cycle` gradient updates of batch 2,048, a buffer of the most whole rollouts of `num_envs` episodes
-    that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as banded matmuls in bfloat16
-    (`NetworkConfig.conv_impl`, `vision_dtype`), the fastest image update on a GPU, with which nicol_slide and
-    planar_reach learn as in float32 (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's
+    that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as matmuls in bfloat16, banded
+    with the last two layers as whole-frame Toeplitz matmuls (`NetworkConfig.conv_impl` toeplitz, `vision_dtype`),
+    the fastest image update on a GPU, with which nicol_slide and planar_reach learn as in float32 (docs/results.md,
+    "Image updates"); the physics on MuJoCo Warp where a run's
     devices are NVIDIA GPUs and warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than
     MJX-JAX's there (docs/results.md, "MJX-JAX against MuJoCo Warp"); a checkpoint every 10 epochs instead of 5,
     since one holds the replay buffer (7 GB of frames for 5 seeds) and its save costs about two nicol_slide epochs
@@ -269,7 +270,7 @@ def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cy
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
              "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
     return {"run": {"epochs": epochs, "physics": "auto", "checkpoint_every": 10}, "train": train,
-            "network": {"conv_impl": "banded", "vision_dtype": "bfloat16"}}
+            "network": {"conv_impl": "toeplitz", "vision_dtype": "bfloat16"}}
 
 
 LIFT_HELD_STARTS = 0.5  # HER's pick-and-place (arXiv 1707.01495, Sec. 4): half of the training episodes held

@@ -115,14 +115,16 @@ def test_convs_under_the_seeds_vmap_are_the_seeds_own_encoders_and_gradients(imp
         np.testing.assert_allclose(a, b, atol=1e-4)
 
 
-def test_a_bfloat16_vision_branch_keeps_float32_parameters_and_gradients():
-    """--vision-dtype bfloat16: the same parameter tree in float32 (a checkpoint of either loads in the other);
-    φ(s) comes out float32, within bfloat16's rounding of the float32 branch's, and so do its gradients."""
-    def networks(dtype):
-        config = NetworkConfig(conv_channels=4, latent_size=8, vision_dtype=dtype)
+@pytest.mark.parametrize("impl", CONV_IMPLS)
+def test_a_bfloat16_vision_branch_keeps_float32_parameters_and_gradients(impl):
+    """--vision-dtype bfloat16, each --conv-impl: the same parameter tree in float32 (a checkpoint of either loads in
+    the other); φ(s) comes out float32, within bfloat16's rounding of the float32 patch branch's, and so do its
+    gradients."""
+    def networks(dtype, impl):
+        config = NetworkConfig(conv_channels=4, latent_size=8, vision_dtype=dtype, conv_impl=impl)
         return AGENTS["multimodal_bidal"].networks(config, 4, 2, 2, (42, 42, 1))
 
-    full, half = networks("float32"), networks("bfloat16")
+    full, half = networks("float32", "patch"), networks("bfloat16", impl)
     params = full.init(jax.random.PRNGKey(0))["encoder"]
     assert jax.tree.structure(half.init(jax.random.PRNGKey(0))["encoder"]) == jax.tree.structure(params)
     assert {leaf.dtype for leaf in jax.tree.leaves(half.init(jax.random.PRNGKey(0)))} == {np.dtype(np.float32)}
