@@ -82,13 +82,12 @@ def make_losses(networks: Networks, config, bidal: bool) -> Losses:
     def encode_runs(enc_params, batch, steps: slice) -> jax.Array:
         """φ of the frames `steps` of each sampled run (`replay.sample`: a run's transitions share their frames)
         in one encoder pass: [runs, frames, latent]; slice(None) is every frame s_t ... s_{t+run}."""
-        runs = batch["frames"].shape[0] if "frames" in batch else None
-        proprio, next_proprio = (batch[k].reshape(runs or batch[k].shape[0], -1, batch[k].shape[-1])
-                                 for k in ("proprio", "next_proprio"))
+        frames = batch.get("frames")  # without images each transition is a run of its own: proprio is cheap
+        runs = batch["proprio"].shape[0] if frames is None else frames.shape[0]
+        proprio, next_proprio = (batch[k].reshape(runs, -1, batch[k].shape[-1]) for k in ("proprio", "next_proprio"))
         proprio = jnp.concatenate([proprio, next_proprio[:, -1:]], axis=1)[:, steps]
-        images = batch["frames"][:, steps] if runs else None
-        phis = networks.encode(enc_params, None if images is None else images.reshape(-1, *images.shape[2:]),
-                               proprio.reshape(-1, proprio.shape[-1]))
+        images = None if frames is None else frames[:, steps].reshape(-1, *frames.shape[2:])
+        phis = networks.encode(enc_params, images, proprio.reshape(-1, proprio.shape[-1]))
         return phis.reshape(*proprio.shape[:2], -1)
 
     def per_transition(phis: jax.Array) -> jax.Array:
