@@ -262,11 +262,11 @@ def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cy
     that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as matmuls in bfloat16, banded
     with the last two layers as whole-frame Toeplitz matmuls (`NetworkConfig.conv_impl` toeplitz, `vision_dtype`),
     the fastest image update on a GPU, with which nicol_slide and planar_reach learn as in float32 (docs/results.md,
-    "Image updates"); the physics on MuJoCo Warp where a run's
-    devices are NVIDIA GPUs and warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than
-    MJX-JAX's there (docs/results.md, "MJX-JAX against MuJoCo Warp"); a checkpoint every 10 epochs instead of 5,
-    since one holds the replay buffer (7 GB of frames for 5 seeds) and its save costs about two nicol_slide epochs
-    (docs/results.md, "What a checkpoint costs"). The CPU-sized tasks keep the defaults."""
+    "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and warp-lang imports
+    (`RunConfig.physics` auto), whose epochs are shorter than MJX-JAX's there (docs/results.md, "MJX-JAX against
+    MuJoCo Warp"); a checkpoint every 10 epochs instead of 5, since one holds the replay buffer (7 GB of frames for 5
+    seeds) and its save costs about two nicol_slide epochs (docs/results.md, "What a checkpoint costs"). The
+    CPU-sized tasks keep the defaults."""
     train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
              "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
     return {"run": {"epochs": epochs, "physics": "auto", "checkpoint_every": 10}, "train": train,
