@@ -164,6 +164,24 @@ def test_the_epochs_evaluation_is_acting_evaluate_with_its_eval_key():
     assert float(metrics["eval_success"]) > 0.0
 
 
+def test_an_update_of_runs_encodes_each_runs_frames_once():
+    """`sample_run` 4 with a batch of 8: the learner's update draws 2 runs of 4 transitions and its encoder reads
+    their 2 × 5 frames once (10 frames in one pass, not 16); the update's losses are finite."""
+    config = Config(RunConfig(agent="multimodal_bidal"), dataclasses.replace(TINY, sample_run=4),
+                    NetworkConfig(conv_channels=4))
+    env = PlanarReach(render=True)
+    init, _ = make_train(env, config)
+    state = init(jax.random.PRNGKey(0))
+    state = state.replace(buffer=state.buffer.replace(size=state.buffer.size + 8))  # every slot counts as filled
+    update = make_learner(env, config, Shards(1)).update
+    frames = [eqn.invars[0].aval.shape[0] for eqn in jax.make_jaxpr(update)(state, jax.random.PRNGKey(1)).eqns
+              if eqn.primitive.name == "convert_element_type" and eqn.invars[0].aval.shape[1:] == (42, 42, 1)]
+    assert frames == [10]
+    _, metrics = jax.jit(update)(state, jax.random.PRNGKey(1))
+    for key in ("critic_loss", "forward_loss", "inverse_loss", "actor_loss"):
+        assert np.isfinite(float(metrics[key])), key
+
+
 @pytest.mark.slow
 def test_proprio_baseline_learns_planar_reach():
     env = envs_mjx.make("planar_reach", render=False)
