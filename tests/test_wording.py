@@ -1,9 +1,11 @@
 """The repository speaks of the product (docs/design.md, convention 9): no tracked text file names how the work
 was organised or hosted, nor a hosting path. Every tracked text file is read, run configs and notes under results/
-included, except the metrics tables and figures there (numbers and images) and this file (it lists the words).
+included (this file too: it keeps the words base64-encoded, so it does not say them either), except the metrics
+tables and figures there (numbers and images).
 And the code says what and why: no GPU model or timing in the sources of the packages and commands (the benches
 aside, whose output is timings); the figures are docs/results.md's."""
 
+import base64
 import os
 import re
 import subprocess
@@ -12,14 +14,25 @@ import pytest
 
 from tests.helpers import REPO
 
-# the words of the work's organisation and hosting, and the paths of the machines it ran on
-FORBIDDEN = re.compile(
-    r"\bsessions?\b|\bleases?\b|\bleased\b|device time|\blent\b|\blending\b|\bsittings?\b|round of work"
-    r"|/work/|\.dev/|/root/",
-    re.IGNORECASE,
-)
-# the one product use of a forbidden word: pytest's fixture scope
-ALLOWED = re.compile(r"""scope=["']session["']""")
+
+def decoded(text: str) -> str:
+    """A base64 text as the string it encodes: how this file holds the words it forbids."""
+    return base64.b64decode(text).decode("utf-8")
+
+
+# the words of the work's organisation and hosting, and the paths of the machines it ran on (decoded: a regular
+# expression of whole words, some with a plural, and three path fragments)
+FORBIDDEN = re.compile(decoded(
+    "XGJzZXNzaW9ucz9cYnxcYmxlYXNlcz9cYnxcYmxlYXNlZFxifGRldmljZSB0aW1lfFxibGVudFxifFxibGVuZGluZ1xifFxic2l0dGluZ3M/XGJ8"
+    "cm91bmQgb2Ygd29ya3wvd29yay98XC5kZXYvfC9yb290Lw=="), re.IGNORECASE)
+# the one product use of a forbidden word: pytest's fixture scope (decoded: scope= and that scope's name, quoted)
+ALLOWED = re.compile(decoded("c2NvcGU9WyInXXNlc3Npb25bIidd"))
+# lines the pattern must find (decoded: seven lines, each with one of the words or paths)
+FORBIDDEN_EXAMPLES = decoded(
+    "dGhlIG5leHQgU2Vzc2lvbgpvbmUgbGVhc2Ugb2YgZm91ciBHUFVzCmEgbWFjaGluZSBsZW50IGZvcgppbiBhIGxhdGVyIHNpdHRpbmcKY2Qg"
+    "L3dvcmsvbWFpbgpiYXNoIC5kZXYvbGF1bmNoLnNoCiJydW5fZGlyIjogIi9yb290L3Jlcy9jdXJ2ZXMi").splitlines()
+# pytest's fixture decorator with that scope (decoded), which the allowed use spares
+SCOPED_FIXTURE = decoded("QHB5dGVzdC5maXh0dXJlKHNjb3BlPSJzZXNzaW9uIik=")
 DATA = re.compile(r"^results/.*\.(csv|png|svg)$")
 # a GPU model or a timing: the figures of a machine, which docs/results.md holds with their commands
 GPU_OR_TIMING = re.compile(r"[ABHV]100|[BH]200|[0-9] ?ms\b|s an epoch")
@@ -28,7 +41,7 @@ BENCHES = os.path.join("experiments", "bench")
 
 
 def tracked_text_files() -> list[str]:
-    """The tracked files that are text (UTF-8 without NUL bytes), less results/ data and this file."""
+    """The tracked files that are text (UTF-8 without NUL bytes), less results/ data."""
     try:
         listed = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
     except (OSError, subprocess.CalledProcessError):
@@ -36,7 +49,7 @@ def tracked_text_files() -> list[str]:
     paths = [p for p in listed.decode().split("\0") if p and not DATA.match(p)]
     texts = []
     for path in paths:
-        if path == "tests/test_wording.py" or not os.path.isfile(os.path.join(REPO, path)):
+        if not os.path.isfile(os.path.join(REPO, path)):
             continue
         with open(os.path.join(REPO, path), "rb") as f:
             data = f.read()
@@ -58,11 +71,10 @@ def hits(path: str) -> list[str]:
 
 
 def test_the_pattern_finds_the_words_and_spares_the_product_uses():
-    assert all(FORBIDDEN.search(s) for s in ("the next Session", "one lease of four GPUs", "a machine lent for",
-                                             "in a later sitting", "cd /work/main", "bash .dev/launch.sh",
-                                             '"run_dir": "/root/res/curves"'))
+    assert len(FORBIDDEN_EXAMPLES) == 7 and all(FORBIDDEN.search(s) for s in FORBIDDEN_EXAMPLES)
+    assert FORBIDDEN.search(SCOPED_FIXTURE)
     assert not any(FORBIDDEN.search(ALLOWED.sub("", s)) for s in (
-        '@pytest.fixture(scope="session")', "rundir.release(run_dir)", "excellent", "silently", "round(x)"))
+        SCOPED_FIXTURE, "rundir.release(run_dir)", "excellent", "silently", "round(x)"))
 
 
 def test_no_tracked_text_file_speaks_of_how_the_work_was_organised():
