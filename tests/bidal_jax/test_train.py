@@ -17,6 +17,7 @@ from bidal_jax.config import Config, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.run.devices import make_seeded
 from bidal_jax.train import Shards, make_learner, make_train
 from envs_mjx.planar_reach import PlanarReach
+from experiments.bench.updates import full_buffer
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 
@@ -171,8 +172,7 @@ def test_an_update_of_runs_encodes_each_runs_frames_once():
                     NetworkConfig(conv_channels=4))
     env = PlanarReach(render=True)
     init, _ = make_train(env, config)
-    state = init(jax.random.PRNGKey(0))
-    state = state.replace(buffer=state.buffer.replace(size=state.buffer.size + 8))  # every slot counts as filled
+    state = full_buffer(init(jax.random.PRNGKey(0)))
     update = make_learner(env, config, Shards(1)).update
     frames = [eqn.invars[0].aval.shape[0] for eqn in jax.make_jaxpr(update)(state, jax.random.PRNGKey(1)).eqns
               if eqn.primitive.name == "convert_element_type" and eqn.invars[0].aval.shape[1:] == (42, 42, 1)]
