@@ -7,6 +7,7 @@ import os
 import pytest
 
 from experiments.paper import results_docs
+from tests.experiments.runs import RUN_A, RUN_B, write_run
 from tests.helpers import REPO
 
 RESULTS = os.path.join(REPO, "results")
@@ -93,3 +94,15 @@ def test_a_lever_keeps_parity_unless_its_interval_lies_below_zero(tmp_path):
     assert same.startswith("| task | same | 2 | 0.400, 0.500, 0.600 | 0.500, 0.500, 0.500 | +0.000 [")
     assert same.endswith("| yes |")
     assert "| -0.417 [" in worse and worse.endswith("| no |")
+
+
+def test_the_curves_table_marks_an_agent_not_run_on_a_task(tmp_path):
+    """An agent run on one task but not on another gets "—" there, and each task's epochs are its own runs'."""
+    for task in ("planar_reach", "ur5_reach"):
+        (tmp_path / "curves" / task).mkdir(parents=True)
+        write_run(tmp_path / "curves" / task / "proprio_baseline", "proprio_baseline", RUN_A, env=task)
+    write_run(tmp_path / "curves" / "ur5_reach" / "multimodal_bidal", "multimodal_bidal", RUN_B)
+    head, _, proprio, bidal = results_docs.curves_table(str(tmp_path), "curves").splitlines()
+    assert head == "| agent | planar_reach (3 epochs) | ur5_reach (3 epochs) |"
+    assert proprio == "| proprio_baseline | 0.567 ± 0.100 (last 3) / 0.567 | 0.567 ± 0.100 (last 3) / 0.567 |"
+    assert bidal.startswith("| multimodal_bidal | — | 0.700 ± ") and bidal.endswith(" / 0.700 |")
