@@ -98,9 +98,9 @@ def curves_table(root: str, runs: str) -> str:
     """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column, "final / AUC"; "—" for a cell
     without its run folder (an agent not run on that task yet); each task's epochs are its first run's."""
     tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(root, runs, t))]
-    agents = [a for a in AGENTS if any(os.path.isdir(os.path.join(root, runs, t, a)) for t in tasks)]
-    found = {(t, a): curve_of(os.path.join(root, runs, t, a), a) for t in tasks for a in agents
+    found = {(t, a): curve_of(os.path.join(root, runs, t, a), a) for t in tasks for a in AGENTS
              if os.path.isdir(os.path.join(root, runs, t, a))}
+    agents = [a for a in AGENTS if any((t, a) in found for t in tasks)]
     epochs = {t: next(len(found[t, a].epoch) for a in agents if (t, a) in found) for t in tasks}
     head = ["agent", *(f"{t} ({epochs[t]} epochs)" for t in tasks)]
     rows = [[a, *(f"{report.final_cell(found[t, a], LAST_N)} / {report.normalized_auc(found[t, a]):.3f}"
