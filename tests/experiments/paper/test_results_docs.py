@@ -6,8 +6,8 @@ import os
 
 import pytest
 
-from experiments.paper import results_docs
-from tests.experiments.runs import RUN_A, RUN_B, write_run
+from experiments.paper import curves, grid, results_docs
+from tests.experiments.runs import RUN_A, write_run
 from tests.helpers import REPO
 
 RESULTS = os.path.join(REPO, "results")
@@ -96,13 +96,19 @@ def test_a_lever_keeps_parity_unless_its_interval_lies_below_zero(tmp_path):
     assert "| -0.417 [" in worse and worse.endswith("| no |")
 
 
-def test_the_curves_table_marks_an_agent_not_run_on_a_task(tmp_path):
-    """An agent run on one task but not on another gets "—" there, and each task's epochs are its own runs'."""
+def test_the_curves_table_marks_an_agent_not_run_on_a_task_and_a_stale_run(tmp_path):
+    """An agent run on one task but not on another gets "—" there; each task is headed by its budget; a run of
+    today's config and physics is unmarked, one that is not (here: no physics recorded, 3 epochs) is marked."""
     for task in ("planar_reach", "ur5_reach"):
         (tmp_path / "curves" / task).mkdir(parents=True)
         write_run(tmp_path / "curves" / task / "proprio_baseline", "proprio_baseline", RUN_A, env=task)
-    write_run(tmp_path / "curves" / "ur5_reach" / "multimodal_bidal", "multimodal_bidal", RUN_B)
+    today = tmp_path / "curves" / "ur5_reach" / "multimodal_bidal"
+    write_run(today, "multimodal_bidal", [([0.7] * 5, 8000 * epoch, epoch) for epoch in (1, 2, 3)])  # 5 seeds
+    [arm] = curves.make_arms(["ur5_reach"], ["multimodal_bidal"], curves.build_parser().parse_args([]), {},
+                             str(tmp_path / "curves"))
+    physics = grid.physics_today(["ur5_reach"])["ur5_reach"]
+    (today / "config.json").write_text(json.dumps({**arm.config.to_dict(), "physics": [physics]}))
     head, _, proprio, bidal = results_docs.curves_table(str(tmp_path), "curves").splitlines()
-    assert head == "| agent | planar_reach (3 epochs) | ur5_reach (3 epochs) |"
-    assert proprio == "| proprio_baseline | 0.567 ± 0.100 (last 3) / 0.567 | 0.567 ± 0.100 (last 3) / 0.567 |"
-    assert bidal.startswith("| multimodal_bidal | — | 0.700 ± ") and bidal.endswith(" / 0.700 |")
+    assert head == "| agent | planar_reach (100 epochs) | ur5_reach (150 epochs) |"
+    assert proprio == "| proprio_baseline | 0.567 ± 0.100 (last 3) / 0.567† | 0.567 ± 0.100 (last 3) / 0.567† |"
+    assert bidal == "| multimodal_bidal | — | 0.700 ± 0.000 (last 3) / 0.700 |"
