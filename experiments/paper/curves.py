@@ -79,7 +79,6 @@ from experiments.paper.grid import Arm
 from experiments.paper.protocol import DEFAULT_SEEDS, EPOCHS, TASKS  # the budget: epochs per task
 
 PROG = "python -m experiments.paper.curves"
-STALE = "†"  # marks a stale run's cell in table.md (`grid.stale`)
 LIFT = "nicol_lift"
 
 
@@ -114,27 +113,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def make_arms(
-    tasks: Sequence[str], agents: Sequence[str], args: argparse.Namespace, extra: dict[str, Any], out: str
-) -> list[Arm]:
-    """The cells, task by task in the grid's order, each with its task's epochs for every agent (training splits
-    them into blocks of seeds, `grid.blocks`)."""
-    arms = []
-    for task in (t for t in TASKS if t in tasks):
-        for agent in (a for a in AGENTS if a in agents):
-            given = {
-                "env": task,
-                "agent": agent,
-                "seeds": args.seeds,
-                "seed": args.seed,
-                **extra,
-                "epochs": args.epochs or EPOCHS[task],
-                "run_dir": os.path.join(out, task, agent),
-            }
-            arms.append(Arm(f"{task}/{agent}", given))
-    return arms
-
-
 def plan_text(blocks: Sequence[Arm], envs: dict[str, Any]) -> str:
     """The plan: one line per block of seeds with its estimated time (`grid.estimated_plan`), then the estimated
     total, and the stale runs' count."""
@@ -157,7 +135,7 @@ def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
 
 def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str] = ()) -> str:
     """Markdown: one row per agent, one column per task; a run without epochs is "—", one of `stale` (arm
-    names) is marked `STALE`."""
+    names) is marked `grid.STALE`."""
     tasks = {arm.given["env"]: arm.epochs for arm in arms}
     agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
     by_dir = {c.run_dir: c for c in report.curves(list(runs.values()))}
@@ -167,19 +145,20 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale
         cells = [agent]
         for arm in (a for a in arms if a.given["agent"] == agent):
             run = runs.get(arm.name)
-            mark = STALE if arm.name in stale else ""
+            mark = grid.STALE if arm.name in stale else ""
             cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n) + mark)
         rows.append(cells)
     return report.markdown_table(head, rows)
 
 
 def stale_note(stale: Collection[str], cells: int) -> list[str]:
-    """The line below the table that says what `STALE` marks and how many of its `cells` it marks; none
+    """The line below the table that says what `grid.STALE` marks and how many of its `cells` it marks; none
     when no run is stale."""
     if not stale:
         return []
     return [
-        f"{STALE} stale: {len(stale)} of {cells} cells, runs not recorded on today's physics of their task or made "
+        f"{grid.STALE} stale: {len(stale)} of {cells} cells, runs not recorded on today's physics of their task or "
+        "made "
         "with another config than their arm's today (`grid.stale` in experiments/paper/grid.py; `--dry-run` says "
         "why); training refuses them until their folders are moved away.",
         "",
@@ -256,7 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         multihost.initialize()
         tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
         agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
-        cells = grid.checked_arms(make_arms(tasks, agents, args, extra, out), args.last_n)
+        arms = grid.curve_arms(tasks, agents, args.seeds, args.seed, args.epochs, extra, out)
+        cells = grid.checked_arms(arms, args.last_n)
         blocks = [block for cell in cells for block in grid.blocks(cell)]
     except ConfigError as err:
         return cli.exit_code(err)

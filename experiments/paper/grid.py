@@ -41,7 +41,7 @@ from bidal_jax.config import (
 from bidal_jax.run import checkpoint, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
-from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS
+from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS, EPOCHS, TASKS
 from experiments.report import loaded  # the experiments read their runs through it, as `grid.loaded`
 
 # what passes through to every run: the learner and network options and the checkpoint interval
@@ -81,6 +81,19 @@ class Arm:
     def config(self) -> Config:
         """The run's config: defaults, presets, then its fields."""
         return resolve(self.given)
+
+
+STALE = "†"  # marks a stale run's cell (`stale`) in the learning curves' tables
+
+
+def curve_arms(tasks: Sequence[str], agents: Sequence[str], seeds: int, seed: int, epochs: int | None,
+               extra: dict[str, Any], out: str) -> list[Arm]:
+    """The learning-curve grid's cells (`experiments.paper.curves`) in OUT/<task>/<agent>, task by task in the
+    grid's order, each with `epochs` or else its task's budget (`protocol.EPOCHS`) for every agent (training splits
+    them into blocks of seeds, `blocks`)."""
+    return [Arm(f"{task}/{agent}", {"env": task, "agent": agent, "seeds": seeds, "seed": seed, **extra,
+                                    "epochs": epochs or EPOCHS[task], "run_dir": os.path.join(out, task, agent)})
+            for task in TASKS if task in tasks for agent in AGENTS if agent in agents]
 
 
 def experiment_parser(prog: str, doc: str, runs: str) -> argparse.ArgumentParser:

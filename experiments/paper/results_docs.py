@@ -28,7 +28,7 @@ import numpy as np
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
-from experiments.paper import curves, grid, protocol
+from experiments.paper import grid, protocol
 
 PROG = "python -m experiments.paper.results_docs"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -96,17 +96,16 @@ def epochs_table(root: str, runs: str) -> str:
 
 def stale_cells(out: str, tasks: Sequence[str]) -> set[tuple[str, str]]:
     """(task, agent) of the curves grid's runs in `out` that are not today's: `grid.stale` of the cell the grid
-    would train there by default (`curves.make_arms`) against its task's physics today."""
-    args = curves.build_parser().parse_args([])
+    trains there by default (`grid.curve_arms`) against its task's physics today."""
     today = grid.physics_today(tasks)
-    return {(arm.given["env"], arm.given["agent"]) for arm in curves.make_arms(tasks, AGENTS, args, {}, out)
-            if grid.stale(arm, today[arm.given["env"]])}
+    arms = grid.curve_arms(tasks, AGENTS, protocol.DEFAULT_SEEDS, 0, None, {}, out)
+    return {(arm.given["env"], arm.given["agent"]) for arm in arms if grid.stale(arm, today[arm.given["env"]])}
 
 
 def curves_table(root: str, runs: str) -> str:
     """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column headed by its budget
     (`protocol.EPOCHS`), "final / AUC"; "—" for a cell without its run folder (an agent not run on that task yet);
-    a stale run's cell (`stale_cells`) marked with `curves.STALE` (its epochs are its own)."""
+    a stale run's cell (`stale_cells`) marked with `grid.STALE` (its epochs are its own)."""
     tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(root, runs, t))]
     found = {(t, a): curve_of(os.path.join(root, runs, t, a), a) for t in tasks for a in AGENTS
              if os.path.isdir(os.path.join(root, runs, t, a))}
@@ -117,7 +116,7 @@ def curves_table(root: str, runs: str) -> str:
     def cell(task: str, agent: str) -> str:
         if (task, agent) not in found:
             return "—"
-        curve, mark = found[task, agent], curves.STALE if (task, agent) in stale else ""
+        curve, mark = found[task, agent], grid.STALE if (task, agent) in stale else ""
         return f"{report.final_cell(curve, LAST_N)} / {report.normalized_auc(curve):.3f}{mark}"
 
     return report.markdown_table(head, [[a, *(cell(t, a) for t in tasks)] for a in agents])

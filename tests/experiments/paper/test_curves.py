@@ -35,7 +35,8 @@ def fake_run():
 
 def _arms(argv, out="out"):
     args, rest = curves.build_parser().parse_known_args(argv)
-    return curves.make_arms(TASKS, tuple(config_lib.AGENTS), args, grid.pass_through(rest, curves.PROG), out)
+    return grid.curve_arms(TASKS, tuple(config_lib.AGENTS), args.seeds, args.seed, args.epochs,
+                           grid.pass_through(rest, curves.PROG), out)
 
 
 def test_the_grid_is_the_papers_tasks_and_agents():

@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from experiments.paper import curves, grid, results_docs
+from experiments.paper import grid, results_docs
 from tests.experiments.runs import RUN_A, write_run
 from tests.helpers import REPO
 
@@ -104,8 +104,7 @@ def test_the_curves_table_marks_an_agent_not_run_on_a_task_and_a_stale_run(tmp_p
         write_run(tmp_path / "curves" / task / "proprio_baseline", "proprio_baseline", RUN_A, env=task)
     today = tmp_path / "curves" / "ur5_reach" / "multimodal_bidal"
     write_run(today, "multimodal_bidal", [([0.7] * 5, 8000 * epoch, epoch) for epoch in (1, 2, 3)])  # 5 seeds
-    [arm] = curves.make_arms(["ur5_reach"], ["multimodal_bidal"], curves.build_parser().parse_args([]), {},
-                             str(tmp_path / "curves"))
+    [arm] = grid.curve_arms(["ur5_reach"], ["multimodal_bidal"], 5, 0, None, {}, str(tmp_path / "curves"))
     physics = grid.physics_today(["ur5_reach"])["ur5_reach"]
     (today / "config.json").write_text(json.dumps({**arm.config.to_dict(), "physics": [physics]}))
     head, _, proprio, bidal = results_docs.curves_table(str(tmp_path), "curves").splitlines()
