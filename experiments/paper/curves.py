@@ -158,9 +158,8 @@ def stale_note(stale: Collection[str], cells: int) -> list[str]:
         return []
     return [
         f"{grid.STALE} stale: {len(stale)} of {cells} cells, runs not recorded on today's physics of their task or "
-        "made "
-        "with another config than their arm's today (`grid.stale` in experiments/paper/grid.py; `--dry-run` says "
-        "why); training refuses them until their folders are moved away.",
+        "made with another config than their arm's today (`grid.stale` in experiments/paper/grid.py; `--dry-run` "
+        "says why); training refuses them until their folders are moved away.",
         "",
     ]
 
