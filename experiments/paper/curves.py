@@ -76,7 +76,7 @@ from bidal_jax.run import multihost
 from experiments import cli, cluster, report
 from experiments.paper import grid, protocol
 from experiments.paper.grid import Arm
-from experiments.paper.protocol import DEFAULT_SEEDS, EPOCHS, TASKS  # the budget: epochs per task
+from experiments.paper.protocol import DEFAULT_SEED, DEFAULT_SEEDS, EPOCHS, TASKS  # the budget: epochs per task
 
 PROG = "python -m experiments.paper.curves"
 LIFT = "nicol_lift"
@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
                         f"{', '.join(AGENTS)})")
     parser.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, help="seeds of every cell, in blocks of seeds "
                         "vmapped as one program")
-    parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="first random seed of every run")
     parser.add_argument(
         "--epochs",
         type=int,

@@ -50,6 +50,7 @@ from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import (
+    DEFAULT_SEED,
     KAPPAS,
     LAST_N,
     NOISE_EPOCHS,
@@ -187,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "three); default: all three κ in one program per agent, in OUT/<agent>")
     parser.add_argument("--epochs", type=int, default=None, help=f"epochs per run (default {NOISE_EPOCHS}: "
                         "the widest window of the final success after the curves level off)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED)
     parser.add_argument("--noise-segments", default=SEGMENTS, help="proprio segments that get noise")
     for name in SIZE_OPTIONS:
         parser.add_argument("--" + name.replace("_", "-"), type=int, default=None, help="(default: the env preset's)")

@@ -36,6 +36,7 @@ TASKS = tuple(EPOCHS)
 # seeds per cell of the grid (a task and an agent), trained in blocks that each finish in `BLOCK_SECONDS`
 # (`grid.blocks`)
 DEFAULT_SEEDS = 5
+DEFAULT_SEED = 0  # the first random seed of every run (the experiments' --seed)
 # a block of a cell's seeds is one run estimated to end within this, compilation included, on one GPU: GPUs
 # held for half an hour, cluster jobs with wall-time limits and preemptible machines lose at most one block
 BLOCK_SECONDS = 1200.0

@@ -67,7 +67,7 @@ from bidal_jax.run import multihost
 from experiments import cli, cluster, report, stats
 from experiments.paper import grid
 from experiments.paper.grid import Arm
-from experiments.paper.protocol import AGENT, SOURCE_ENV, TARGET_ENV, THRESHOLDS, seed_measures
+from experiments.paper.protocol import AGENT, DEFAULT_SEED, SOURCE_ENV, TARGET_ENV, THRESHOLDS, seed_measures
 
 PROG = "python -m experiments.paper.transfer_learning"
 ARMS = ("source", "transfer", "scratch")
@@ -84,7 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--source-epochs", type=int, default=None, help="epochs of the source (default: its preset)")
     parser.add_argument("--epochs", type=int, default=None, help="epochs of both reduced-lift arms (default: preset)")
     parser.add_argument("--seeds", type=int, default=5, help="seeds of every run, vmapped (the source needs as many)")
-    parser.add_argument("--seed", type=int, default=0, help="first random seed of every run")
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="first random seed of every run")
     parser.add_argument("--init-parts", default=RunConfig.init_parts, help="networks the transfer arm restores")
     parser.add_argument("--init-normaliser", default=RunConfig.init_normaliser, choices=INIT_NORMALISERS,
                         help="the transfer arm's proprio normaliser: fresh (zero counts) or inherit (the source's)")
