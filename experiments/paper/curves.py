@@ -157,9 +157,7 @@ def stale_note(stale: Collection[str], cells: int) -> list[str]:
     if not stale:
         return []
     return [
-        f"{grid.STALE} stale: {len(stale)} of {cells} cells, runs not recorded on today's physics of their task or "
-        "made with another config than their arm's today (`grid.stale` in experiments/paper/grid.py; `--dry-run` "
-        "says why); training refuses them until their folders are moved away.",
+        f"{grid.STALE} stale: {len(stale)} of {cells} cells, {grid.STALE_WHY}.",
         "",
     ]
 
@@ -200,8 +198,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
     runs = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
     if not runs:
         return None
-    stale = [arm.name for arm in arms
-             if arm.name in runs and grid.stale_config(runs[arm.name]["config"], arm, today[arm.given["env"]])]
+    stale = grid.stale_runs(arms, runs, today)
     grid.write_figure(report.curves(list(runs.values())), os.path.join(out, "curves"), title)
     total = sum(report.last_time(r)[0] for r in runs.values())
     return "\n".join([

@@ -84,6 +84,9 @@ class Arm:
 
 
 STALE = "†"  # marks a stale run's cell (`stale`) in the learning curves' tables
+STALE_WHY = ("runs not recorded on today's physics of their task or made with another config than their arm's today "
+             "(`grid.stale` in experiments/paper/grid.py; `--dry-run` says why); training refuses them until their "
+             "folders are moved away")
 
 
 def curve_arms(tasks: Sequence[str], agents: Sequence[str], seeds: int, seed: int, epochs: int | None,
@@ -219,6 +222,13 @@ def stale(arm: Arm, physics: str | None) -> str | None:
     `physics` today's fingerprint of its env), or None. A folder without epochs is never stale: it starts again."""
     run = loaded(arm.run_dir)
     return None if run is None else stale_config(run["config"], arm, physics)
+
+
+def stale_runs(arms: Sequence[Arm], runs: dict[str, dict], today: dict[str, str | None]) -> list[str]:
+    """The names of `arms` whose run in `runs` (arm name -> `loaded` run) is stale (`stale_config`), `today`: env
+    name -> its physics fingerprint today (`physics_today`)."""
+    return [arm.name for arm in arms
+            if arm.name in runs and stale_config(runs[arm.name]["config"], arm, today[arm.given["env"]])]
 
 
 def stale_config(config: dict, arm: Arm, physics: str | None) -> str | None:

@@ -27,9 +27,10 @@ against env steps per seed, mean ± std over seeds, both arms; `experiments/repo
 `table.md` (env steps and wall time to 0.3 and 0.5 success, area under the curve, final
 success; for the difference transfer − scratch of AUC and of env steps to 0.3 and 0.5, per seed
 and censored at the run's total env steps where a seed never gets there, a 95 % bootstrap
-interval over seeds and Welch's t interval, `experiments/stats.py`; and the command that
-regenerates it). Each run's metrics are its `metrics.csv`; times are its `wall_time`: seconds of
-training, compilation not counted. Every training command compiles into the persistent compilation
+interval over seeds and Welch's t interval, `experiments/stats.py`; the runs, source included, that
+are stale, whose figures are not today's experiment; and the command that regenerates it). Each
+run's metrics are its `metrics.csv`; times are its `wall_time`: seconds of training, compilation not
+counted. Every training command compiles into the persistent compilation
 cache (`cli.start_run`) and both arms' programs are identical, so whichever arm compiles second skips
 most of it; counting compilation would favour that arm. The source's training time is not in the
 transfer arm's times.
@@ -222,8 +223,19 @@ def regenerate_command(args: argparse.Namespace, out: str) -> str:
     return " ".join([PROG, "--arms none", *filter(None, options)])
 
 
-def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int) -> str | None:
-    """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has)."""
+def stale_note(arms: Sequence[Arm], today: dict[str, str | None]) -> list[str]:
+    """The line below the arms' table naming the runs of `arms` (the source's too) that are stale
+    (`grid.stale_runs`, `today`: env name -> its physics fingerprint today); none when none is."""
+    stale = grid.stale_runs(arms, {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}, today)
+    if not stale:
+        return []
+    return [f"Stale: {', '.join(stale)}, {grid.STALE_WHY}. Their figures here are not today's experiment.", ""]
+
+
+def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, last_n: int,
+                 today: dict[str, str | None]) -> str | None:
+    """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has),
+    naming the stale runs (`stale_note`)."""
     targets = [arm for arm in arms if arm.name != "source"]
     runs = {arm.name: r for arm in targets if (r := grid.loaded(arm.run_dir))}
     if not runs:
@@ -242,6 +254,7 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
         "",
         grid.gaps(targets, runs),
         "",
+        *stale_note(arms, today),
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
     ]
     by_label = {c.label: c for c in curves}
@@ -288,7 +301,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results
         try:
-            text = plot_results(out, arms, source_dir(args, out), title, args.last_n)
+            today = {arm.given["env"]: envs[arm.name].physics_id for arm in arms}
+            text = plot_results(out, arms, source_dir(args, out), title, args.last_n, today)
             command = regenerate_command(args, out)
             grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
         except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)

@@ -57,6 +57,7 @@ def test_finished_runs_are_skipped_and_the_table_and_plot_written(tmp_path, no_n
         "| scratch | 2 | 3 | 300 | 300 (epoch 3) | 30 s | not reached | not reached | 0.200 | 0.250 ± 0.050 |" in table
     )
     assert "Source: nicol_slide multimodal_bidal" in table and "2 epochs, 200 env steps per seed, 20 s" in table
+    assert "Stale" not in table
     assert "| AUC | 0.500 | 0.200 | 0.300 |" in table  # transfer − scratch (tests/experiments/test_stats.py)
     assert (
         f"Regenerate from the run folders: `python -m experiments.paper.transfer_learning --arms none --out {out} "
@@ -136,6 +137,17 @@ def test_a_stale_arm_is_refused_when_it_would_train(tmp_path, no_nicol, capsys):
     ]
     assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "source"]) == 0  # trains only the source
     assert [call[:2] for call in no_nicol] == [("prepare", str(out / "source")), ("train", str(out / "source"))]
+
+
+def test_the_table_names_the_stale_runs_it_shows(tmp_path, no_nicol, fake_run):
+    out = tmp_path / "out"
+    fake_run(str(out / "source"), "nicol_slide", FAKE["source"], None)
+    fake_run(str(out / "transfer"), "nicol_lift_reduced", FAKE["transfer"], None)
+    write_fake_run(str(out / "scratch"), "nicol_lift_reduced", FAKE["scratch"], None, given={"epochs": 3})  # no physics
+    assert experiment.main([*EXPERIMENT, "--out", str(out), "--arms", "none"]) == 0
+    table = (out / "table.md").read_text()
+    assert "| scratch | 2 | 3 | 300 |" in table
+    assert f"\n\nStale: scratch, {grid.STALE_WHY}. Their figures here are not today's experiment.\n\n" in table
 
 
 def test_the_transfer_arm_refuses_a_stale_source(tmp_path, no_nicol, capsys):
