@@ -247,6 +247,20 @@ def test_learning_speed_enters_the_verdict_with_auc_and_steps_intervals(tmp_path
         in overall.ours
 
 
+def test_a_missing_cell_leaves_the_claims_about_other_agents_measured(tmp_path, fake_run):
+    write_grid(fake_run, tmp_path)
+    shutil.rmtree(tmp_path / "nicol_lift" / claims.ABLATION)
+    *paper, reward = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
+    assert [c.verdict for c in paper] == ["reproduced"] * 5
+    assert reward.verdict == f"not measured: nicol_lift/{claims.ABLATION} missing"
+    shutil.rmtree(tmp_path / "ur5_reach" / "visual_baseline")
+    learn, visual, overall, lift, seeds, reward = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
+    assert learn.verdict == "reproduced"  # the BidAL agents' cells are all there
+    missing = "not measured: ur5_reach/visual_baseline missing"
+    assert visual.verdict == overall.verdict == lift.verdict == seeds.verdict == missing
+    assert reward.verdict == f"not measured: nicol_lift/{claims.ABLATION} missing"
+
+
 def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
     # multimodal_bidal slides but never lifts: 0.97 overall, 0.1 on air goals
