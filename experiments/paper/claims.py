@@ -35,10 +35,10 @@ against; Fisher's exact test as in (a). "reproduced": every check favours; "reve
 against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer epochs than
 its budget: the curves grid's epochs per task, or the env and agent preset's for the noise and transfer runs, or its
 config's if more), its figures still shown; a learning claim needs the cells of the agents it is about (the λ = 0
-row multimodal_bidal's and the ablation's, "best overall" and the lifting rows every paper agent's). Runs made on other physics than the task's model today (config.json
-records the fingerprints of the physics a run trained on, `envs_mjx.base.Env.physics_id`; runs older than that
-record none), and runs of a task named by `--stale`, get their verdict qualified "measured on ... runs not recorded
-on today's physics".
+row multimodal_bidal's and the ablation's, "best overall" and the lifting rows every paper agent's). Runs made on
+other physics than the task's model today (config.json records the fingerprints of the physics a run trained on,
+`envs_mjx.base.Env.physics_id`; runs older than that record none), and runs of a task named by `--stale`, get
+their verdict qualified "measured on ... runs not recorded on today's physics".
 
 Time: the file ends with what the runs on today's physics took, per experiment and per machine (config.json's
 "hardware"; "not recorded" for runs older than that record): the sum of each run's last `wall_time_with_compile`.
