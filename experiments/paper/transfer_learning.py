@@ -223,10 +223,10 @@ def regenerate_command(args: argparse.Namespace, out: str) -> str:
     return " ".join([PROG, "--arms none", *filter(None, options)])
 
 
-def stale_note(arms: Sequence[Arm], today: dict[str, str | None]) -> list[str]:
-    """The line below the arms' table naming the runs of `arms` (the source's too) that are stale
-    (`grid.stale_runs`, `today`: env name -> its physics fingerprint today); none when none is."""
-    stale = grid.stale_runs(arms, {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}, today)
+def stale_note(arms: Sequence[Arm], runs: dict[str, dict], today: dict[str, str | None]) -> list[str]:
+    """The line below the arms' table naming the runs of `arms` (the source's too; `runs`: arm name -> its loaded
+    run) that are stale (`grid.stale_runs`, `today`: env name -> its physics fingerprint today); none when none is."""
+    stale = grid.stale_runs(arms, runs, today)
     if not stale:
         return []
     return [f"Stale: {', '.join(stale)}, {grid.STALE_WHY}. Their figures here are not today's experiment.", ""]
@@ -236,8 +236,9 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
                  today: dict[str, str | None]) -> str | None:
     """success.png/.csv in `out` from the arms that have epochs; returns the text of table.md (None if none has),
     naming the stale runs (`stale_note`)."""
+    loaded = {arm.name: r for arm in arms if (r := grid.loaded(arm.run_dir))}
     targets = [arm for arm in arms if arm.name != "source"]
-    runs = {arm.name: r for arm in targets if (r := grid.loaded(arm.run_dir))}
+    runs = {arm.name: loaded[arm.name] for arm in targets if arm.name in loaded}
     if not runs:
         return None
     curves = report.curves(list(runs.values()), labels={r["dir"]: name for name, r in runs.items()})
@@ -254,13 +255,13 @@ def plot_results(out: str, arms: Sequence[Arm], source_dir: str, title: str, las
         "",
         grid.gaps(targets, runs),
         "",
-        *stale_note(arms, today),
+        *stale_note(arms, loaded, today),
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
     ]
     by_label = {c.label: c for c in curves}
     if {"transfer", "scratch"} <= set(by_label):
         notes += difference_notes(by_label["transfer"], by_label["scratch"], short_note(targets, runs))
-    source = grid.loaded(source_dir)
+    source = loaded.get("source") or grid.loaded(source_dir)  # a --source run is no arm
     if source is not None:
         notes.append(
             f"Source: {source['env']} {source['agent']} in {source_dir}, {len(source['epoch'])} epochs, "
