@@ -97,25 +97,25 @@ def epochs_table(root: str, runs: str) -> str:
 def curves_table(root: str, runs: str) -> str:
     """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column headed by its budget
     (`protocol.EPOCHS`), "final / AUC"; "—" for a cell without its run folder (an agent not run on that task yet);
-    a cell whose run is not today's (`grid.stale_config` against the cell the grid trains there by default,
+    a cell whose run is not today's (`grid.stale_runs` against the cell the grid trains there by default,
     `grid.curve_arms`, and its task's physics today) marked with `grid.STALE` (its epochs are its own). Each run
     folder is read once."""
     out = os.path.join(root, runs)
     tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(out, t))]
-    today = grid.physics_today(tasks)
-    arms = {(arm.given["env"], arm.given["agent"]): arm
-            for arm in grid.curve_arms(tasks, AGENTS, protocol.DEFAULT_SEEDS, protocol.DEFAULT_SEED, None, {}, out)
-            if os.path.isdir(arm.run_dir)}
-    found = {cell: report.load_run(arm.run_dir) for cell, arm in arms.items()}
-    agents = [a for a in AGENTS if any((t, a) in found for t in tasks)]
+    arms = [arm for arm in grid.curve_arms(tasks, AGENTS, protocol.DEFAULT_SEEDS, protocol.DEFAULT_SEED, None, {}, out)
+            if os.path.isdir(arm.run_dir)]
+    found = {arm.name: report.load_run(arm.run_dir) for arm in arms}
+    stale = set(grid.stale_runs(arms, found, grid.physics_today(tasks)))
+    names = {(arm.given["env"], arm.given["agent"]): arm.name for arm in arms}
+    agents = [a for a in AGENTS if any((t, a) in names for t in tasks)]
     head = ["agent", *(f"{t} ({protocol.EPOCHS[t]} epochs)" for t in tasks)]
 
     def cell(task: str, agent: str) -> str:
-        if (task, agent) not in found:
+        name = names.get((task, agent))
+        if name is None:
             return "—"
-        run = found[task, agent]
-        curve = report.curves([run], labels={run["dir"]: agent})[0]
-        mark = grid.STALE if grid.stale_config(run["config"], arms[task, agent], today[task]) else ""
+        curve = report.curves([found[name]], labels={found[name]["dir"]: agent})[0]
+        mark = grid.STALE if name in stale else ""
         return f"{report.final_cell(curve, LAST_N)} / {report.normalized_auc(curve):.3f}{mark}"
 
     return report.markdown_table(head, [[a, *(cell(t, a) for t in tasks)] for a in agents])
