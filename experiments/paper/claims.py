@@ -205,8 +205,7 @@ def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int) -> Grid:
 def grid_gaps(runs: dict[tuple[str, str], dict | None], agents: Sequence[str]) -> list[str]:
     """Why the cells of `agents` cannot measure a claim (`gap`): the runs of a claim about those agents alone, so
     that a missing cell of another agent (the λ = 0 ablation's) leaves it measured."""
-    budgets = {t: protocol.EPOCHS[t] for t in protocol.TASKS}
-    found = [gap(f"{t}/{a}", run, max(budgets[t], protocol.budget(run) if run else 0))
+    found = [gap(f"{t}/{a}", run, max(protocol.EPOCHS[t], protocol.budget(run) if run else 0))
              for (t, a), run in runs.items() if a in agents]
     return [g for g in found if g]
 
