@@ -6,6 +6,8 @@ Before training, a run is refused with one line saying what to reduce (`ConfigEr
 - `check_program`: its compiled epoch needs more, at once, than that share: the state it takes, the working
   memory of its rollouts and updates, and the outputs that do not reuse the state's buffers (`program_bytes`, from
   XLA's `memory_analysis()` of the compiled program; e.g. a batch too large for the device, whose state fits).
+On a GPU a device's memory is the share JAX takes of it (75 % unless `XLA_PYTHON_CLIENT_MEM_FRACTION` says
+otherwise); below 90 % the line also says to give JAX more (`more_of_the_gpu`).
 
 What XLA still cannot allocate while a program compiles or runs (its estimate is not the allocator's, other
 processes share the device) raises `RESOURCE_EXHAUSTED` (`exhausted`); `out_of_memory` and `ran_out` turn it
@@ -30,6 +32,10 @@ from bidal_jax.run.runfiles import first_line
 MEMORY_SHARE = 0.9
 GIB = 2.0**30
 REDUCE = "use a smaller --batch-size, fewer seeds, --num-envs or --buffer-episodes"
+# the share of a GPU's memory JAX takes by default (XLA_PYTHON_CLIENT_MEM_FRACTION unset), and the share from which
+# giving it more is not worth suggesting
+DEFAULT_GPU_FRACTION = 0.75
+FULL_GPU_FRACTION = 0.9
 # how XLA names an allocation that failed (the status code; the allocators' own words)
 EXHAUSTED = ("RESOURCE_EXHAUSTED", "Out of memory", "out of memory")
 
@@ -46,13 +52,25 @@ def device_memory() -> int:
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
+def more_of_the_gpu() -> str:
+    """What to add to a refusal when JAX holds less of a GPU than it may: "; or give JAX more of the GPU's memory
+    (XLA_PYTHON_CLIENT_MEM_FRACTION, now F)" on a GPU whose fraction is below `FULL_GPU_FRACTION`; "" elsewhere
+    (a CPU's limit is its RAM)."""
+    if jax.default_backend() != "gpu":
+        return ""
+    fraction = float(os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION", DEFAULT_GPU_FRACTION))
+    if fraction >= FULL_GPU_FRACTION:
+        return ""
+    return f"; or give JAX more of the GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, now {fraction:g})"
+
+
 def check_state(needed: int, available: int, seeds: int) -> None:
     """Refuse a training state whose share on one device (`needed` bytes) cannot fit in `MEMORY_SHARE` of that
     device's memory (`available` bytes)."""
     if needed > MEMORY_SHARE * available:
         raise ConfigError(
             f"--seeds {seeds}: the training state needs {needed / GIB:,.1f} GiB, more than {MEMORY_SHARE:.0%} of the "
-            f"device's {available / GIB:,.1f} GiB; use fewer seeds, envs or --buffer-episodes"
+            f"device's {available / GIB:,.1f} GiB; use fewer seeds, envs or --buffer-episodes{more_of_the_gpu()}"
         )
 
 
@@ -84,7 +102,7 @@ def check_program(stats: Any, available: int) -> None:
         raise ConfigError(
             f"the training program needs {needed / GIB:,.1f} GiB of device memory at once (its epoch's working "
             f"memory {working / GIB:,.1f} GiB beside the state), more than {MEMORY_SHARE:.0%} of the device's "
-            f"{available / GIB:,.1f} GiB; {REDUCE}"
+            f"{available / GIB:,.1f} GiB; {REDUCE}{more_of_the_gpu()}"
         )
 
 

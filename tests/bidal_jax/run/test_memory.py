@@ -4,6 +4,7 @@ in one line with exit 6, and its last checkpoint resumes. On a CPU, with the dev
 epoch made to raise XLA's RESOURCE_EXHAUSTED."""
 
 import os
+import re
 import types
 
 import jax
@@ -37,6 +38,24 @@ def test_a_program_is_its_state_its_working_memory_and_the_outputs_not_written_i
     with pytest.raises(ConfigError, match=rf"needs 1\.5 GiB of device memory at once .*working memory 1\.0 GiB.*"
                                           rf"90% of the device's 1\.0 GiB; {REDUCE}$"):
         memory.check_program(stats(2**29, 2**30, 2**29, 2**29), available=2**30)
+
+
+def test_a_refusal_on_a_gpu_says_to_give_jax_more_of_it_while_jax_holds_less_than_90_percent(monkeypatch):
+    """JAX takes 75 % of a GPU unless told otherwise: a program refused there may fit with a larger share."""
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+    too_large = stats(2**29, 2**30, 2**29, 2**29)
+    hint = "; or give JAX more of the GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, now 0.75)"
+    with pytest.raises(ConfigError, match=rf"{REDUCE}{re.escape(hint)}$"):
+        memory.check_program(too_large, available=2**30)
+    with pytest.raises(ConfigError, match=rf"--buffer-episodes{re.escape(hint)}$"):
+        memory.check_state(2**30, available=2**30, seeds=5)
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.45")  # a grid's half-GPU cell
+    with pytest.raises(ConfigError, match=r"XLA_PYTHON_CLIENT_MEM_FRACTION, now 0\.45\)$"):
+        memory.check_program(too_large, available=2**30)
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.95")  # JAX holds nearly all of it already
+    with pytest.raises(ConfigError, match=rf"{REDUCE}$"):
+        memory.check_program(too_large, available=2**30)
 
 
 def test_only_xlas_failure_to_allocate_is_out_of_memory():
