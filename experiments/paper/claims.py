@@ -482,10 +482,12 @@ def time_report(experiments: dict[str, list[dict]], old: set[str]) -> str:
     """What the runs behind the claims took: per experiment (name -> its runs, `runs_below`) and per machine, the
     sum of each run's last `wall_time_with_compile` (training and compiling, summed over its processes; `wall_time`,
     compiling not counted, where metrics.csv predates that column: `report.last_time`), for the runs on today's
-    physics; the runs whose folders are in `old` (on other physics: `on_other_physics`) apart."""
-    per_experiment, per_machine, other, without_compile = [], {}, 0.0, 0
+    physics; the runs whose folders are in `old` (on other physics: `on_other_physics`) apart, or a line that
+    there are none."""
+    per_experiment, per_machine, other, others, without_compile = [], {}, 0.0, 0, 0
     for name, runs in experiments.items():
         stale = {run["dir"] for run in runs} & old
+        others += len(stale)
         total = 0.0
         for run in runs:
             seconds, with_compile = report.last_time(run)
@@ -504,7 +506,8 @@ def time_report(experiments: dict[str, list[dict]], old: set[str]) -> str:
             "Each run counts its last `wall_time_with_compile`: training and compiling, summed over its processes"
             + (f"; runs older than that column ({without_compile}) count their `wall_time`, compiling not counted"
                if without_compile else "")
-            + f". Runs on other physics, not counted: {hours(other)}.")
+            + (f". Runs on other physics, not counted: {hours(other)} ({count(others, 'run')})." if others
+               else ". No run is on other physics."))
 
 
 def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set[str], last_n: int,

@@ -190,7 +190,8 @@ def test_time_report_sums_the_runs_on_todays_physics_per_experiment_and_machine(
     assert "physics: curves 1.3 h (2 runs), noise 0.0 h (0 runs), transfer 0.0 h (0 runs); in all 1.3 h" in text
     assert "(per machine, as config.json records it: 1 × GPU then 2 × GPU: 1.0 h; not recorded: 0.3 h)" in text
     assert "runs older than that column (1) count their `wall_time`" in text
-    assert text.endswith("Runs on other physics, not counted: 0.3 h.")
+    assert text.endswith("Runs on other physics, not counted: 0.3 h (1 run).")
+    assert claims.time_report(runs, set()).endswith(". No run is on other physics.")
 
 
 def test_readme_block_is_replaced_and_a_readme_without_one_is_refused(tmp_path, fake_run, capsys):
