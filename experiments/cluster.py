@@ -57,15 +57,13 @@ from typing import Any, Callable, Iterator, Sequence
 
 import experiments
 from bidal_jax.config import ConfigError
-from bidal_jax.run import rundir
+from bidal_jax.run import memory, rundir
 from bidal_jax.run.runfiles import first_line
 from experiments import report
 
 EXIT_LOST = 5  # a cell's worker died more often than --retries allows
 EXIT_CRASHED = 1  # a cell whose code raised an error that no exit code names (a bug): Python's exit code for it
 EXIT_SIGINT = 130  # the driver stopped by Ctrl-C, as experiments.run's
-# the share of a GPU's memory JAX may take per share of the GPU a cell is given (the rest: CUDA contexts)
-MEMORY_PER_SHARE = 0.9
 # the folder holding the packages, which workers put first on their path (this checkout's code, not another)
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(experiments.__file__)))
 GRID_LOCK = ".grid.lock"  # the lock file in a grid's --out folder (`holding`; a sweep's: beside its --out file)
@@ -154,7 +152,7 @@ def worker_env(gpus_per_cell: float) -> dict[str, str]:
     fraction of a GPU, JAX's share of the GPU's memory."""
     env = {"PYTHONPATH": os.pathsep.join(p for p in (ROOT, os.environ.get("PYTHONPATH")) if p)}
     if 0 < gpus_per_cell < 1:
-        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{MEMORY_PER_SHARE * gpus_per_cell:.2f}"
+        env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{memory.FULL_GPU_FRACTION * gpus_per_cell:.2f}"
     return env
 
 

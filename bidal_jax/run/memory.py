@@ -32,8 +32,9 @@ from bidal_jax.run.runfiles import first_line
 MEMORY_SHARE = 0.9
 GIB = 2.0**30
 REDUCE = "use a smaller --batch-size, fewer seeds, --num-envs or --buffer-episodes"
-# the share of a GPU's memory JAX takes by default (XLA_PYTHON_CLIENT_MEM_FRACTION unset), and the share from which
-# giving it more is not worth suggesting
+# the share of a GPU's memory JAX takes by default (XLA_PYTHON_CLIENT_MEM_FRACTION unset), and the most it should
+# take (the rest: CUDA contexts): a refusal while JAX holds less suggests more (`more_of_the_gpu`), and a grid's
+# cell given a fraction of a GPU takes that fraction of it (`experiments.cluster.worker_env`)
 DEFAULT_GPU_FRACTION = 0.75
 FULL_GPU_FRACTION = 0.9
 # how XLA names an allocation that failed (the status code; the allocators' own words)
@@ -56,7 +57,7 @@ def more_of_the_gpu() -> str:
     """What to add to a refusal when JAX holds less of a GPU than it may: "; or give JAX more of the GPU's memory
     (XLA_PYTHON_CLIENT_MEM_FRACTION, now F)" on a GPU whose fraction is below `FULL_GPU_FRACTION`; "" elsewhere
     (a CPU's limit is its RAM)."""
-    if jax.default_backend() != "gpu":
+    if jax.local_devices()[0].platform != "gpu":  # the device `device_memory` measures
         return ""
     fraction = float(os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION", DEFAULT_GPU_FRACTION))
     if fraction >= FULL_GPU_FRACTION:

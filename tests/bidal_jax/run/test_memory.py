@@ -42,7 +42,7 @@ def test_a_program_is_its_state_its_working_memory_and_the_outputs_not_written_i
 
 def test_a_refusal_on_a_gpu_says_to_give_jax_more_of_it_while_jax_holds_less_than_90_percent(monkeypatch):
     """JAX takes 75 % of a GPU unless told otherwise: a program refused there may fit with a larger share."""
-    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    monkeypatch.setattr(jax, "local_devices", lambda: [types.SimpleNamespace(platform="gpu")])
     monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
     too_large = stats(2**29, 2**30, 2**29, 2**29)
     hint = "; or give JAX more of the GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, now 0.75)"
