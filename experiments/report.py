@@ -14,6 +14,9 @@
   with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
   seed) and PREFIX.csv (the plotted numbers).
 - `markdown_table`, `summary_table`: Markdown tables.
+- `load_floors`: each task's floor (what a policy that does nothing scores, per goal subset), as
+  `python -m experiments.probes.floors` stored it in results/floors/figures.json; `floor_text` names it beside a
+  score, `seeds_above` tests each seed's last epochs against it.
 
 Times: metrics.csv's `wall_time` counts from when the training programs were built (compilation
 not counted), `wall_time_with_compile` from when training began (compilation included; absent
@@ -29,6 +32,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
+import json
 import os
 import re
 from collections import Counter
@@ -37,12 +41,16 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from bidal_jax.run import runfiles
+from experiments import stats
 
 X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
 SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
 BLOCK = re.compile(r"seeds-(\d+)-(\d+)$")  # a block's folder in its cell's: the indices of its first and last seed
 AIR = "eval_success_air"  # nicol_lift's success over its air goals alone (`Env.goal_subsets`)
 WITH_COMPILE = "wall_time_with_compile"
+FLOORS = os.path.join("results", "floors")  # where `python -m experiments.probes.floors` writes the floors
+FLOORS_FILE = "figures.json"
+ALPHA = 0.05  # the level of the per-seed test against the floor (`seeds_above`)
 
 
 class RunError(runfiles.RunFileError):
@@ -384,3 +392,50 @@ def summary_table(
             cells.append("never" if hit is None else f"{hit.epoch}, {hit.env_steps:,.0f}, {hit.wall_time:.0f} s")
         rows.append(cells)
     return markdown_table(head, rows)
+
+
+@dataclasses.dataclass(frozen=True)
+class Floor:
+    """A task's floor over one goal subset: the estimate, its 95 % Monte Carlo half-width and the share of goals in
+    the subset (`envs_mjx.floors`)."""
+
+    value: float
+    half_width: float
+    share: float
+
+
+Floors = dict[str, dict[str, Floor]]  # task -> goal subset ("all", "air", "table") -> its floor
+
+
+def load_floors(folder: str = FLOORS) -> Floors:
+    """The floors stored in FOLDER/figures.json (`experiments.probes.floors`): task -> subset -> `Floor`; {} where
+    the file does not exist (the tables then say the floor is not computed); RunError naming a damaged one."""
+    path = os.path.join(folder, FLOORS_FILE)
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path, encoding="utf-8") as f:
+            found = json.load(f)
+        return {task: {name: Floor(float(f["value"]), float(f["half_width"]),
+                                   f["resets"] / subsets["all"]["resets"]) for name, f in subsets.items()}
+                for section in found if "floors" in section for task, subsets in section["floors"].items()}
+    except (OSError, KeyError, TypeError, ValueError, ZeroDivisionError) as err:  # a bad JSON is a ValueError
+        raise RunError(f"{path}: not the floors `python -m experiments.probes.floors` writes ({err!r})") from None
+
+
+def floor_text(floors: Floors, task: str, subset: str = "all") -> str:
+    """"floor 0.031" for a task's floor over `subset`; "floor not computed" where results/floors lacks it."""
+    found = floors.get(task, {}).get(subset)
+    return "floor not computed" if found is None else f"floor {found.value:.3f}"
+
+
+def seeds_above(success: np.ndarray, episodes: float, floor: float, last_n: int, alpha: float = ALPHA) -> np.ndarray:
+    """Per seed [S] of `success` [E, S] (eval success per epoch), whether it is clearly above `floor`: the one-sided
+    binomial test (`stats.above_p`) of its successes among its last min(last_n, E) epochs' eval episodes
+    (`episodes` an epoch per seed: the run's eval_envs, times the share of goals in a subset for a subset's
+    success, rounded down) against `floor`, Holm-corrected over the seeds (`stats.holm`), at `alpha`."""
+    per_epoch = int(episodes)
+    window = success[-last_n:]
+    hits = np.rint(window * per_epoch).sum(axis=0).astype(int)
+    p = [stats.above_p(int(k), per_epoch * window.shape[0], floor) for k in hits]
+    return stats.holm(p) < alpha
