@@ -17,6 +17,7 @@
 - `load_floors`: each task's floor (what a policy that does nothing scores, per goal subset), as
   `python -m experiments.probes.floors` stored it in results/floors/figures.json; `floor_text` names it beside a
   score, `seeds_above` tests each seed's last epochs against it.
+- `machine_time`: the GPU time runs held, runs that shared a GPU counted once (`gpu_sharing`).
 
 Times: metrics.csv's `wall_time` counts from when the training programs were built (compilation
 not counted), `wall_time_with_compile` from when training began (compilation included; absent
@@ -31,7 +32,9 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import fnmatch
 import functools
+import glob
 import json
 import os
 import re
@@ -439,3 +442,50 @@ def seeds_above(success: np.ndarray, episodes: float, floor: float, last_n: int,
     hits = np.rint(window * per_epoch).sum(axis=0).astype(int)
     p = [stats.above_p(int(k), per_epoch * window.shape[0], floor) for k in hits]
     return stats.holm(p) < alpha
+
+
+RESULTS = "results"  # the experiments' results folder, whose figures.json files record how their runs shared GPUs
+
+
+def gpu_sharing(root: str = RESULTS) -> list[tuple[tuple[str, ...], int]]:
+    """How runs shared a GPU, as each experiment's figures.json records it (ROOT/*/figures.json, a section's
+    "gpu_sharing": [{"runs": [glob patterns of run folders relative to ROOT], "at_once": k}, ...]): (patterns, k)
+    per group of runs that trained k at a time on one machine. config.json and metrics.csv record neither when a
+    run started nor what ran beside it, so this is the record the machine time rests on."""
+    groups = []
+    for path in sorted(glob.glob(os.path.join(root, "*", "figures.json"))):
+        with open(path, encoding="utf-8") as f:
+            sections = json.load(f)
+        groups += [(tuple(g["runs"]), int(g["at_once"])) for s in sections for g in s.get("gpu_sharing", [])]
+    return groups
+
+
+def gpus_of(run: dict) -> int:
+    """The GPUs of the machine a run's processes ran on: the most of config.json's "hardware" entries ("2 × NVIDIA
+    H100 ..."); 1 where it records none."""
+    counts = [int(m.group(1)) for h in run["config"].get("hardware") or [] if (m := re.match(r"(\d+) ×", h))]
+    return max(counts, default=1)
+
+
+def machine_time(runs: Sequence[dict], root: str = RESULTS,
+                 groups: Sequence[tuple[tuple[str, ...], int]] | None = None) -> tuple[float, float]:
+    """(Machine seconds, process seconds) of `runs`: process time is the sum of each run's `last_time`; machine
+    time is the time the GPUs were held, wall time × the GPUs of the machine (`gpus_of`), with runs that shared a
+    machine counted once: a group of runs that trained k at a time (`gpu_sharing`, by their folders relative to
+    `root`) held it for max(their summed time / k, the longest of them), a queue that keeps k running; a run in no
+    group held its machine alone."""
+    groups = gpu_sharing(root) if groups is None else groups
+    members: dict[int, list[dict]] = {}
+    machine = 0.0
+    for run in runs:
+        where = os.path.relpath(run["dir"], root)
+        found = next((i for i, (patterns, _) in enumerate(groups) if any(fnmatch.fnmatch(where, p) for p in patterns)),
+                     None)
+        if found is None:
+            machine += last_time(run)[0] * gpus_of(run)
+        else:
+            members.setdefault(found, []).append(run)
+    for i, shared in members.items():
+        times = [last_time(run)[0] for run in shared]
+        machine += max(sum(times) / groups[i][1], max(times)) * max(gpus_of(run) for run in shared)
+    return machine, sum(last_time(run)[0] for run in runs)
