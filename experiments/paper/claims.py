@@ -80,6 +80,9 @@ BIDAL = ("visual_bidal", "multimodal_bidal")
 OURS, VISUAL, PROPRIO, LIFT = "multimodal_bidal", "visual_baseline", "proprio_baseline", "nicol_lift"
 ABLATION = "multimodal_bidal_no_ri"  # OURS without the intrinsic reward (λ = 0): an added arm, no paper agent
 PAPER_BASELINES = (PROPRIO, VISUAL)  # Fig. 4's comparisons: the paper's baselines
+# "especially on lifting" is a margin larger on lifting than elsewhere: against the baseline that learns the tasks
+# (against visual_baseline, which learns next to nothing anywhere, the margin would be OURS's own level)
+LIFT_BASELINES = (PROPRIO,)
 ADDED = ("multimodal_baseline", ABLATION)  # our added arms, each compared on its own row
 NOISE_KAPPAS = (0.10, 0.15)
 BASELINES = ("multimodal_baseline", "proprio_baseline")  # Table II's
@@ -407,13 +410,15 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], floors: report
     if LIFT not in tasks or not others:
         return [overall, Claim(names[1][0], "—", names[1][1], f"{NOT_MEASURED}: {LIFT} or another task missing", "")]
     order = [LIFT, *others]
-    checks, texts = comparisons(measured, order, PAPER_BASELINES, share=True,
+    checks, texts = comparisons(measured, order, LIFT_BASELINES, share=True,
                                 weights=[1.0, *([-1.0 / len(others)] * len(others))])
     lift = Claim(
         names[1][0], f"{LIFT} margin − mean margin on {', '.join(others)}: " + " / ".join(texts), names[1][1],
         judged(checks, gaps, set(tasks), stale),
         comparison_rule(f"its margin on {LIFT} less its mean margin on the other tasks (a contrast of the tasks' "
-                        "means; the ceiling judged on nicol_lift)", PAPER_BASELINES)
+                        "means; the ceiling judged on nicol_lift; against the paper's baseline that learns the "
+                        "tasks: against visual_baseline, which learns next to nothing anywhere, the margin would be "
+                        f"{OURS}'s own level)", LIFT_BASELINES)
         + f"; {air_note(measured.overall)}")
     return [overall, lift]
 

@@ -113,10 +113,14 @@ def trend(curve: report.Curve, last_n: int) -> tuple[float, float, float]:
     return stats.student_interval(window_fit(curve, last_n)[0])
 
 
+MIN_MOVE = 0.01  # success over the window below which a fitted trend is no climb (one point of success)
+
+
 def trending(curve: report.Curve, last_n: int) -> bool:
-    """Whether the runs' success still moves over the window: their slopes' interval (`trend`) excludes 0."""
-    _, low, high = trend(curve, last_n)
-    return bool(low > 0 or high < 0)
+    """Whether the runs' success still moves over the window: their slopes' interval (`trend`) excludes 0 and the
+    mean slope moves success by at least `MIN_MOVE` over the window's epochs."""
+    mean, low, high = trend(curve, last_n)
+    return bool((low > 0 or high < 0) and abs(mean) * (min(last_n, len(curve.epoch)) - 1) >= MIN_MOVE)
 
 
 def trend_text(curve: report.Curve, last_n: int) -> str:
