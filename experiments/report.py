@@ -426,10 +426,15 @@ def load_floors(folder: str = FLOORS) -> Floors:
         raise RunError(f"{path}: not the floors `python -m experiments.probes.floors` writes ({err!r})") from None
 
 
-def floor_text(floors: Floors, task: str, subset: str = "all") -> str:
-    """"floor 0.031" for a task's floor over `subset`; "floor not computed" where results/floors lacks it."""
+def floor_value(floors: Floors, task: str, subset: str = "all") -> str:
+    """"0.031" for a task's floor over `subset`; "not computed" where results/floors lacks it."""
     found = floors.get(task, {}).get(subset)
-    return "floor not computed" if found is None else f"floor {found.value:.3f}"
+    return "not computed" if found is None else f"{found.value:.3f}"
+
+
+def floor_text(floors: Floors, task: str, subset: str = "all") -> str:
+    """"floor 0.031" (`floor_value`)."""
+    return f"floor {floor_value(floors, task, subset)}"
 
 
 def seeds_above(success: np.ndarray, episodes: float, floor: float, last_n: int, alpha: float = ALPHA) -> np.ndarray:

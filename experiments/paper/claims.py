@@ -69,7 +69,7 @@ from typing import Sequence
 
 import numpy as np
 
-from bidal_jax.config import AGENTS, resolve
+from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from envs_mjx.nicol import AIR_GOAL_PROBABILITY, NicolLift
 from experiments import cli, report, stats
@@ -218,12 +218,6 @@ class Grid:
     floors: dict[tuple[str, str], float]  # (task, agent) -> the floor its curve is tested against
 
 
-def eval_episodes(run: dict) -> int:
-    """A run's eval episodes per seed and epoch: its config's eval_envs, else its env and agent preset's."""
-    given = run["config"].get("train", {}).get("eval_envs")
-    return int(given or resolve({"env": run["env"], "agent": run["agent"]}).train.eval_envs)
-
-
 def learned_floor(floors: report.Floors, task: str, overall: bool) -> tuple[float, float] | None:
     """(The floor a run's judged curve is tested against, the share of eval episodes it counts): the task's floor
     over all goals (`report.load_floors`); on nicol_lift over air goals the larger of that subset's floor and what a
@@ -245,7 +239,7 @@ def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: 
             overall += [key[1]] * fallback
             if (floor := learned_floor(floors, key[0], fallback)) is not None:
                 tested[key] = floor[0]
-                above[key] = report.seeds_above(curve.success, eval_episodes(run) * floor[1], floor[0], last_n)
+                above[key] = report.seeds_above(curve.success, protocol.eval_episodes(run) * floor[1], floor[0], last_n)
     return Grid(figures, budgets, tuple(dict.fromkeys(overall)), above, tested)
 
 
@@ -360,8 +354,7 @@ def comparison_text(primary: Compared, check_: str, p: float, secondary: Sequenc
 
 def floors_text(floors: report.Floors, tasks: Sequence[str]) -> str:
     """"floors: planar_reach 0.008, …" of `tasks` (nicol_lift's over air goals)."""
-    return "floors: " + ", ".join(f"{t} {report.floor_text(floors, t, 'air' if t == LIFT else 'all')[6:]}"
-                                  for t in tasks)
+    return "floors: " + ", ".join(f"{t} {report.floor_value(floors, t, 'air' if t == LIFT else 'all')}" for t in tasks)
 
 
 def comparisons(measured: Grid, tasks: Sequence[str], others: Sequence[str], share: bool,

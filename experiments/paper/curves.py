@@ -125,17 +125,21 @@ def seconds(run: dict) -> str:
     return f"{time:,.0f} s" + ("" if with_compile else "*")
 
 
-def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
-    """Final success (mean ± std over seeds of each seed's last `last_n` epochs), the run's wall
-    time (`seconds`), and how far it got when it is unfinished."""
+def cell(run: dict, curve: report.Curve, epochs: int, last_n: int, floors: report.Floors) -> str:
+    """Final success (mean ± std over seeds of each seed's last `last_n` epochs), how many seeds are clearly above
+    the task's floor (`protocol.above_floor`), the run's wall time (`seconds`), and how far it got when it is
+    unfinished."""
     done = int(run["epoch"][-1])
     progress = "" if done >= epochs else f", epoch {done} of {epochs}"
-    return f"{report.final_cell(curve, last_n)}, {seconds(run)}{progress}"
+    above = protocol.above_floor(run, floors, last_n)
+    return f"{report.final_cell(curve, last_n)}{f' ({above})' if above else ''}, {seconds(run)}{progress}"
 
 
-def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str] = ()) -> str:
-    """Markdown: one row per agent, one column per task; a run without epochs is "—", one of `stale` (arm
-    names) is marked `grid.STALE`."""
+def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str] = (),
+                  floors: report.Floors | None = None) -> str:
+    """Markdown: one row per agent, one column per task, then the tasks' floors (`report.load_floors`, over all
+    goals); a run without epochs is "—", one of `stale` (arm names) is marked `grid.STALE`."""
+    floors = report.load_floors() if floors is None else floors
     tasks = {arm.given["env"]: arm.epochs for arm in arms}
     agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
     by_dir = {c.run_dir: c for c in report.curves(list(runs.values()))}
@@ -146,8 +150,9 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale
         for arm in (a for a in arms if a.given["agent"] == agent):
             run = runs.get(arm.name)
             mark = grid.STALE if arm.name in stale else ""
-            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n) + mark)
+            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n, floors) + mark)
         rows.append(cells)
+    rows.append(["floor: a policy that does nothing", *(report.floor_value(floors, task) for task in tasks)])
     return report.markdown_table(head, rows)
 
 
@@ -185,7 +190,9 @@ def lift_note(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> list[s
     finals = [(agent, run["success_air"][-last_n:].mean(axis=0)) for agent, run in cells]
     parts = [f"{agent} {final.mean():.3f}, {protocol.seeds_that_lift(final)} of {final.size} seeds lift"
              for agent, final in finals]
-    return [f"{LIFT}, air goals alone (evaluation from reset; a policy that never lifts scores {floor:.3f}): final "
+    idle = report.floor_value(report.load_floors(), LIFT, "air")
+    return [f"{LIFT}, air goals alone (evaluation from reset; a policy that never lifts scores {floor:.3f}, one that "
+            f"does nothing {idle}): final "
             f"success over the last {last_n} epochs and the seeds that lift (their air-goal success ≥ "
             f"{protocol.LIFTS} there): " + "; ".join(parts) + ".", ""]
 
@@ -204,8 +211,11 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
     return "\n".join([
         f"# {title}",
         "",
-        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
-        "then the run's wall time (its last `wall_time_with_compile`, compilation included; * its last "
+        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs, "
+        "with how many seeds are clearly above the task's floor (the last row: what a policy that does nothing "
+        "scores, results/floors; a one-sided binomial test of each seed's successes in those epochs' eval episodes, "
+        "Holm over the run's seeds, α = 0.05); then the run's wall time (its last `wall_time_with_compile`, "
+        "compilation included; * its last "
         "`wall_time`, compilation not counted, where metrics.csv predates that column).",
         "",
         results_table(arms, runs, last_n, stale),

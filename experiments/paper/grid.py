@@ -347,7 +347,7 @@ def duration(seconds: float) -> str:
 
 def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "plan:", named: bool = True) -> str:
     """`heading`, then one `plan_line` per run (after its name when `named`) with its estimated time (`estimate`),
-    then the estimated total and the stale runs' count."""
+    then the estimated total, the machine time the runs with epochs held, and the stale runs' count."""
     statuses = [status(arm, envs[arm.name].physics_id) for arm in arms]
     seconds = [estimate(arm, progress) for arm, progress in zip(arms, statuses)]
     lines = [heading]
@@ -358,6 +358,12 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
         "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
         "included)"
     )
+    done = [run for arm in arms if (run := loaded(arm.run_dir))]
+    if done:
+        held, summed = report.machine_time(done)
+        lines.append(f"held so far: {duration(held)} of GPU time by the {len(done)} runs with epochs (wall time × the "
+                     "GPUs of their machine, runs that shared a GPU counted once as results/*/figures.json records "
+                     f"them: `report.machine_time`); their summed process time {duration(summed)}")
     stale_runs = sum(progress.state == "stale" for progress in statuses)
     if stale_runs:
         lines.append(f"stale: {stale_runs} of {len(arms)} runs; training refuses them until their folders are moved "

@@ -129,6 +129,22 @@ def trend_text(curve: report.Curve, last_n: int) -> str:
     return f"{mean:+.4f} [{low:.4f}, {high:.4f}] an epoch"
 
 
+def eval_episodes(run: dict) -> int:
+    """A run's eval episodes per seed and epoch: its config's eval_envs, else its env and agent preset's."""
+    given = run["config"].get("train", {}).get("eval_envs")
+    return int(given or resolve({"env": run["env"], "agent": run["agent"]}).train.eval_envs)
+
+
+def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
+    """"k/S above its floor": how many of the run's seeds are clearly above its task's floor over all goals
+    (`report.seeds_above` of its eval success); "" where results/floors lacks the task."""
+    task = run["env"] if run["env"] in floors else run["env"].removesuffix("_reduced")
+    if "all" not in floors.get(task, {}):
+        return ""
+    above = report.seeds_above(run["success"], eval_episodes(run), floors[task]["all"].value, last_n)
+    return f"{int(above.sum())}/{above.size} above its floor"
+
+
 def budget(run: dict, default: int | None = None) -> int:
     """A run's epoch budget: its config's epochs, or its experiment's `default` if more (by default its env and
     agent preset's)."""

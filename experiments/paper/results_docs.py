@@ -36,7 +36,7 @@ DOC = os.path.join("docs", "results.md")
 PARTS = ("Performance", "Learning (paper Fig. 4)", "Noise (paper Table II)", "Transfer (paper Fig. 6)",
          "Reliability")
 # the folders of results/ in the order of their sections; each is linked from its sections
-FOLDERS = ("scaling", "parity", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "noise",
+FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "noise",
            "noise_probe", "transfer", "reliability")
 FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
 LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
@@ -98,8 +98,8 @@ def curves_table(root: str, runs: str) -> str:
     """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column headed by its budget
     (`protocol.EPOCHS`), "final / AUC"; "—" for a cell without its run folder (an agent not run on that task yet);
     a cell whose run is not today's (`grid.stale_runs` against the cell the grid trains there by default,
-    `grid.curve_arms`, and its task's physics today) marked with `grid.STALE` (its epochs are its own). Each run
-    folder is read once."""
+    `grid.curve_arms`, and its task's physics today) marked with `grid.STALE` (its epochs are its own); the last row
+    the tasks' floors over all goals (root/floors, `report.load_floors`). Each run folder is read once."""
     out = os.path.join(root, runs)
     tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(out, t))]
     arms = [arm for arm in grid.curve_arms(tasks, AGENTS, protocol.DEFAULT_SEEDS, protocol.DEFAULT_SEED, None, {}, out)
@@ -118,7 +118,10 @@ def curves_table(root: str, runs: str) -> str:
         mark = grid.STALE if name in stale else ""
         return f"{report.final_cell(curve, LAST_N)} / {report.normalized_auc(curve):.3f}{mark}"
 
-    return report.markdown_table(head, [[a, *(cell(t, a) for t in tasks)] for a in agents])
+    floors = report.load_floors(os.path.join(root, "floors"))
+    rows = [[a, *(cell(t, a) for t in tasks)] for a in agents]
+    rows.append(["floor: a policy that does nothing", *(report.floor_value(floors, t) for t in tasks)])
+    return report.markdown_table(head, rows)
 
 
 def pilots_table(root: str, runs: Sequence[Sequence[str]]) -> str:
@@ -201,8 +204,9 @@ def noise_table(root: str, runs: str) -> str:
             mean, std, _ = report.final_success(found[k, a], protocol.LAST_N[k])
             cells += [f"{mean:.3f} ± {std:.3f}", "{:.3f} ± {:.3f}".format(*protocol.PAPER[k][a])]
         rows.append(cells)
+    floor = report.floor_text(report.load_floors(os.path.join(root, "floors")), protocol.NOISE_ENV)
     return report.markdown_table(["κ", "last N epochs", *(f"{a}{whose}" for a in agents for whose in ("", ", paper"))],
-                                 rows)
+                                 rows) + f"\n\n{protocol.NOISE_ENV}'s {floor} (a policy that does nothing)."
 
 
 def transfer_table(root: str, runs: str) -> str:

@@ -36,7 +36,8 @@ from experiments.paper import protocol
 
 PROG = "python -m experiments.probes.floors"
 RESETS = 200_000
-ROLLOUTS = {"planar_reach": 50_000, "ur5_reach": 50_000, "nicol_slide": 512, "nicol_lift": 512}
+# idle episodes: NICOL's 2,048 hold each goal subset's half-width within 0.005 (about 1,000 episodes a subset)
+ROLLOUTS = {"planar_reach": 50_000, "ur5_reach": 50_000, "nicol_slide": 2_048, "nicol_lift": 2_048}
 
 
 def commit() -> str:
@@ -49,8 +50,8 @@ def commit() -> str:
     return (head + (" + changes" if git("status", "--porcelain", "--untracked-files=no") else "")) or "unknown"
 
 
-def section(found: dict[str, dict[str, floors.Floor]], command: str) -> dict:
-    """The figures.json section of the floors `found` (task -> subset -> `Floor`)."""
+def section(found: dict[str, dict[str, floors.Floor]], command: str, at: str) -> dict:
+    """The figures.json section of the floors `found` (task -> subset -> `Floor`), computed at commit `at`."""
     rows = [[task, name, f"{f.value:.4f} ± {f.half_width:.4f}", f"{f.resets:,}", f"{f.rollouts:,}"]
             for task, subsets in found.items() for name, f in subsets.items()]
     return {
@@ -66,7 +67,7 @@ def section(found: dict[str, dict[str, floors.Floor]], command: str) -> dict:
         "command": command,
         "machine": f"{loop.hardware()}, {os.cpu_count()} CPU cores, JAX {jax.__version__}, without rendering",
         "date": datetime.date.today().isoformat(),
-        "commit": commit(),
+        "commit": at,
         "table": {"head": ["task", "goals", "floor ± 95 % half-width", "resets N", "idle episodes M"], "rows": rows},
         "floors": {task: {name: f.as_dict() for name, f in subsets.items()} for task, subsets in found.items()},
     }
@@ -93,7 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         runfiles.check_output_dir(os.path.dirname(os.path.normpath(args.out)), "--out")  # its parent: before the work
     except ValueError as err:
         return cli.exit_code(err)
-    key = jax.random.key(args.seed)
+    key, at = jax.random.key(args.seed), commit()  # the code as it was when the estimate began
     found = {}
     for i, task in enumerate(tasks):
         found[task] = floors.floor(envs_mjx.make(task, render=False), jax.random.fold_in(key, i),
@@ -106,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     path = os.path.join(args.out, report.FLOORS_FILE)
     with rundir.writing(path):
         os.makedirs(args.out, exist_ok=True)
-        runfiles.write_atomic(path, json.dumps([section(found, " ".join([PROG, *options]))], indent=2,
+        runfiles.write_atomic(path, json.dumps([section(found, " ".join([PROG, *options]), at)], indent=2,
                                                ensure_ascii=False) + "\n")
     print(f"written to {path}")
     return 0
