@@ -1,47 +1,55 @@
-"""The paper's three claims, measured on our run folders, each with a verdict by a stated rule:
+"""The paper's three claims, measured on our run folders, each with a verdict by a rule fixed before the runs are read:
 
     python -m experiments.paper.claims --curves results/curves --noise results/noise --transfer results/transfer
-        --out results/claims.md [--readme docs/reproduction.md] [--stale TASK[,TASK]] [--last-n 10]
+        [--plain results/curves-plain] [--floors results/floors] --out results/claims.md [--readme docs/reproduction.md]
+        [--stale TASK[,TASK]] [--last-n 10]
 
-(a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline none; multimodal
-    BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
-    experiments/paper/curves.py), per seed: its final success (the mean of its last `--last-n` epochs), its
-    normalised AUC (its mean success over all epochs: learning speed over the whole budget) and its env steps to
-    0.5 and to 0.9 success (the first epoch its success reaches the threshold; a seed that never does counts the
-    run's last env steps, its budget, and is named censored: its steps are understated, so a difference against
-    its arm is understated, never overstated). On nicol_lift every figure is the success over air goals alone
-    (metrics.csv's `eval_success_air`: a policy that slides but never lifts scores 0.5625 overall and 0.125
-    there); a run without that column (older than it) is judged on its overall success and named in the rule.
-    Checks: a run has learned a task when its final success (mean over seeds) is at least LEARNED; multimodal
-    BidAL against the best other agent in each measure (final success, AUC, env steps to 0.5, to 0.9): each a
-    bootstrap interval over seeds of the difference, over the mean over tasks for "best overall" (env steps as a
-    share of each run's budget, so that tasks of other lengths weigh alike) and on nicol_lift for "most clearly on
-    lifting" (env steps as they are), where also its final-success margin must be larger than on every other task;
-    and the seeds that lift (final success over air goals ≥ LIFTS; without the column overall ≥ LIFTS_OVERALL,
-    which implies it when half the goals lie in the air), k of n per agent with Wilson intervals, multimodal
-    BidAL's against the other agent's with the largest share by Fisher's exact test (two-sided; favours or against
-    when p < ALPHA, by the side, else unclear).
-(b) Noise (Sec. IV-B, Table II): at κ = 10 and 15 % multimodal BidAL's success is steadier (each run's
-    std over the last N epochs, the mean over runs) and higher (the mean over runs of each run's last-N
-    mean) than both baselines'. From `--noise` (experiments/paper/noise_robustness.py).
-(c) Transfer (Sec. IV-C, Fig. 6): reduced lift learns faster from nicol_slide's representation than
-    from scratch: fewer env steps to 0.5 success, larger AUC (per seed, experiments/paper/transfer_learning.py). From
-    `--transfer`.
+Every comparison is named in advance (no comparator is picked from the data), has one primary measure that decides
+(`PRIMARY`, AUC: each seed's mean success over all epochs, learning speed over the whole budget) while the others are
+reported, and where several checks decide one claim their p-values are Holm-corrected (`stats.holm`). A difference
+is Welch's t over seeds (`stats.welch_difference`: a percentile bootstrap undercovers at 5 seeds). A success measure
+where both arms are within `CEILING` of 1 is "at the ceiling" and does not decide. Floors: each task's success of a
+policy that does nothing (`report.load_floors`, written by `python -m experiments.probes.floors`).
 
-Verdicts. Each claim is a list of checks, each of which favours the claim, is against it, or is unclear. A
-comparison's check is its 95 % bootstrap interval over seeds (`stats.bootstrap_difference`): favours when the
-interval lies on the claimed side of 0, against when on the other, else unclear; a threshold's check favours or is
-against; Fisher's exact test as in (a). "reproduced": every check favours; "reversed": none favours and one is
-against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer epochs than
-its budget: the curves grid's epochs per task, or the env and agent preset's for the noise and transfer runs, or its
-config's if more), its figures still shown; a learning claim needs the cells of the agents it is about (the λ = 0
-row multimodal_bidal's and the ablation's, "best overall" and the lifting rows every paper agent's). Runs made on
-other physics than the task's model today (config.json records the fingerprints of the physics a run trained on,
-`envs_mjx.base.Env.physics_id`; runs older than that record none), and runs of a task named by `--stale`, get
-their verdict qualified "measured on ... runs not recorded on today's physics".
+(a) Learning (paper Sec. IV-A, Fig. 4), from `--curves` (OUT/<task>/<agent>, experiments/paper/curves.py); on
+    nicol_lift every figure is the success over air goals alone (metrics.csv's `eval_success_air`; a run without
+    that column is judged on its overall success and named in the rule).
+    - The BidAL agents learn every task, the visual baseline none: a run has learned when every seed is clearly above
+      its task's floor (`report.seeds_above`: a one-sided binomial test of its last `--last-n` epochs' eval episodes
+      against the floor, Holm over the seeds; on nicol_lift's air goals the floor is at least `LIFT_NEVER`, what a
+      policy that slides but never lifts scores), and has failed when no seed is.
+    - Best overall: `OURS` against the paper's baselines (`PAPER_BASELINES`), AUC over the mean over tasks, Holm
+      over the two; final success and env steps to 0.5 and 0.9 (a share of each run's budget; a seed that never gets
+      there counts the budget: censored) reported.
+    - Most clearly on lifting: its AUC margin on nicol_lift less its mean margin on the other tasks (a contrast),
+      against proprio_baseline (`LIFT_BASELINES`: against the visual baseline, which learns next to nothing
+      anywhere, the margin would be OURS's own level).
+    - Added arms (`ADDED`, not in the paper), each its own row: OURS against multimodal_baseline and against the
+      λ = 0 ablation (where a gain comes from), AUC over the mean over tasks.
+    - Lifting seeds (a seed lifts when its final success over air goals is ≥ LIFTS), Fisher's exact test of OURS's
+      against each paper baseline's, Holm over the two: under held starts from `--curves`, and under the plain
+      protocol (`--exploration-starts 0`) from `--plain` (PLAIN/nicol_lift/<agent>, as the curves grid writes it),
+      OURS and the multimodal baseline (an added arm) against proprio_baseline; "not measured" until those runs exist.
+(b) Noise (Sec. IV-B, Table II), from `--noise` (experiments/paper/noise_robustness.py): at κ = 10 and 15 %, OURS's
+    success is steadier (each run's residual std around its own fitted trend over the last N epochs,
+    `protocol.residual_spread`) and higher (each run's last-N mean) than both baselines', Welch over runs, Holm over
+    the four checks of each row. Steadiness is "not measured" while a curve still moves over the window
+    (`protocol.trending`: its runs' slope interval excludes 0): a spread around a climb is the climb's.
+(c) Transfer (Sec. IV-C, Fig. 6): reduced lift learns faster from nicol_slide's representation than from scratch:
+    transfer − scratch in AUC (primary), env steps to 0.3 and 0.5 reported. From `--transfer`.
 
-Time: the file ends with what the runs on today's physics took, per experiment and per machine (config.json's
-"hardware"; "not recorded" for runs older than that record): the sum of each run's last `wall_time_with_compile`.
+Verdicts. A check favours the claim, is against it, is unclear, or is at the ceiling (which does not decide).
+"reproduced": every deciding check favours; "reversed": none favours and one is against (so a comparison is
+reversed only where its primary measure's interval lies against the claim); "not reproduced": otherwise; "not
+measured": a run the claim needs is missing or short (fewer epochs than its budget: the curves grid's epochs per
+task, or the env and agent preset's for the noise and transfer runs, or its config's if more), a task lacks its
+floor, or a steadiness would be read on a climb; its figures still shown. Runs made on other physics than the task's
+model today (config.json's fingerprints, `envs_mjx.base.Env.physics_id`; runs older than that record none), and runs
+of a task named by `--stale`, get their verdict qualified "measured on ... runs not recorded on today's physics".
+
+Time: the file ends with the machine time the runs on today's physics held (`report.machine_time`: wall time × the
+GPUs of their machine, runs that shared a GPU counted once as the experiments' figures.json record it), per
+experiment and in all, and beside it the summed process time per machine (config.json's "hardware").
 
 The previous table: the section of `--out` from its line `## On the earlier tasks` to its end is kept when the
 file is written again, so that the claims as judged on the earlier tasks' runs stay beside today's for

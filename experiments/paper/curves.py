@@ -47,8 +47,9 @@ resumed or repeated where its program is cached compiles in less time; its `wall
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
 per task, one line per agent: eval success against env steps per seed, mean ± std over seeds;
 `experiments/report.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
-`--last-n` epochs, per agent and task, each run's wall time with its compilation, their total, and
-the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
+`--last-n` epochs, per agent and task, with how many seeds are above the task's floor and the floors below; each
+run's wall time with its compilation, the machine time they held and their summed time, and the runs missing
+or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
 `wall_time`, marked "*": compilation not counted; a stale run's cell is marked "†", and a line below
 the table counts them; another names the runs resumed with an empty replay buffer, `grid.fresh_buffer_note`,
 and the epochs a run's metrics.csv lacks; last, the command that regenerates them, `regenerate_command`). `--report`
@@ -207,7 +208,7 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         return None
     stale = grid.stale_runs(arms, runs, today)
     grid.write_figure(report.curves(list(runs.values())), os.path.join(out, "curves"), title)
-    total = sum(report.last_time(r)[0] for r in runs.values())
+    held, total = report.machine_time(list(runs.values()))
     return "\n".join([
         f"# {title}",
         "",
@@ -223,7 +224,9 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         *lift_note(arms, runs, last_n),
         *stale_note(stale, len(runs)),
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
-        f"Total wall time of the runs: {grid.duration(total)}.",
+        f"Machine time the runs held: {grid.duration(held)} of GPU time (wall time × the GPUs of their machine, runs "
+        "that shared a GPU counted once as results/*/figures.json records them, `report.machine_time`); their summed "
+        f"process time: {grid.duration(total)}.",
         "",
         grid.gaps(arms, runs),
         "",
