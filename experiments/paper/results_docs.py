@@ -124,6 +124,16 @@ def curves_table(root: str, runs: str) -> str:
     return report.markdown_table(head, rows)
 
 
+def floors_table(root: str, runs: str) -> str:
+    """Each task's floor (root/runs/figures.json, `report.load_floors`): a row a task, a column per goal subset,
+    each estimate ± its 95 % Monte Carlo half-width; "—" for a subset the task does not have."""
+    floors = report.load_floors(os.path.join(root, runs))
+    subsets = list(dict.fromkeys(name for found in floors.values() for name in sorted(found, key=lambda n: n != "all")))
+    rows = [[task, *(f"{f.value:.4f} ± {f.half_width:.4f}" if (f := found.get(name)) else "—" for name in subsets)]
+            for task, found in floors.items()]
+    return report.markdown_table(["task", *(f"{name} goals" for name in subsets)], rows)
+
+
 def pilots_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     """Per [label, path] (a run folder or a sweep): seeds, epochs, the first epoch of seed mean ≥ 0.9, final."""
     rows = []
@@ -205,8 +215,8 @@ def noise_table(root: str, runs: str) -> str:
             cells += [f"{mean:.3f} ± {std:.3f}", "{:.3f} ± {:.3f}".format(*protocol.PAPER[k][a])]
         rows.append(cells)
     floor = report.floor_text(report.load_floors(os.path.join(root, "floors")), protocol.NOISE_ENV)
-    return report.markdown_table(["κ", "last N epochs", *(f"{a}{whose}" for a in agents for whose in ("", ", paper"))],
-                                 rows) + f"\n\n{protocol.NOISE_ENV}'s {floor} (a policy that does nothing)."
+    head = [f"κ ({protocol.NOISE_ENV}'s {floor})", "last N epochs"]
+    return report.markdown_table([*head, *(f"{a}{whose}" for a in agents for whose in ("", ", paper"))], rows)
 
 
 def transfer_table(root: str, runs: str) -> str:
@@ -240,9 +250,9 @@ def resumed_table(root: str, runs: str) -> str:
 
 
 TABLES: dict[str, Callable[[str, object], str]] = {
-    "epochs": epochs_table, "curves": curves_table, "pilots": pilots_table, "lambda": lambda_table,
-    "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table, "transfer": transfer_table,
-    "resumed": resumed_table,
+    "epochs": epochs_table, "floors": floors_table, "curves": curves_table, "pilots": pilots_table,
+    "lambda": lambda_table, "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table,
+    "transfer": transfer_table, "resumed": resumed_table,
 }
 
 

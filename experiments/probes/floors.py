@@ -6,8 +6,8 @@
 Estimates every task's floor with `envs_mjx.floors.floor` (N resets and M episodes of the idle action, without
 rendering; its docstring gives the estimator, what "does nothing" means per task and the analytic values) and
 writes OUT/figures.json: one section of docs/results.md (`experiments.paper.results_docs`) with the command, the
-machine, the date and commit, a table of the floors with their 95 % Monte Carlo half-widths, and the same numbers
-under "floors" (task -> subset -> value, half_width, resets, rollouts), which the tables and claims read
+machine, the date and commit, and the floors with their 95 % Monte Carlo half-widths under "floors" (task ->
+subset -> value, half_width, resets, rollouts), which docs/results.md's table, the other tables and claims read
 (`experiments.report.load_floors`) to show each score beside its floor. By default M is large for the reaching
 tasks (cheap: their arms droop under the idle action, so rollouts carry the estimate) and 512 for the NICOL
 tasks (0.1 s an episode on a CPU; their cube rests where it starts, so the resets carry it).
@@ -52,8 +52,6 @@ def commit() -> str:
 
 def section(found: dict[str, dict[str, floors.Floor]], command: str, at: str) -> dict:
     """The figures.json section of the floors `found` (task -> subset -> `Floor`), computed at commit `at`."""
-    rows = [[task, name, f"{f.value:.4f} ± {f.half_width:.4f}", f"{f.resets:,}", f"{f.rollouts:,}"]
-            for task, subsets in found.items() for name, f in subsets.items()]
     return {
         "part": "Learning (paper Fig. 4)",
         "title": "Floors: what a policy that does nothing scores",
@@ -68,7 +66,8 @@ def section(found: dict[str, dict[str, floors.Floor]], command: str, at: str) ->
         "machine": f"{loop.hardware()}, {os.cpu_count()} CPU cores, JAX {jax.__version__}, without rendering",
         "date": datetime.date.today().isoformat(),
         "commit": at,
-        "table": {"head": ["task", "goals", "floor ± 95 % half-width", "resets N", "idle episodes M"], "rows": rows},
+        "table": "floors",  # docs/results.md's table, from "floors" below (`results_docs.floors_table`)
+        "runs": "floors",
         "floors": {task: {name: f.as_dict() for name, f in subsets.items()} for task, subsets in found.items()},
     }
 
