@@ -14,8 +14,9 @@ empty; config.json's "fresh_buffer_epochs" records after which epochs.
 Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
 `ConfigError` (an epoch program larger than the device's memory, `memory.check_program`: refused before it
 trains), `Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk),
-`memory.OutOfMemory` (the device ran out of memory all the same while the program compiled or trained; the last
-good checkpoint is kept).
+`memory.OutOfMemory` (the device ran out of memory all the same while the program compiled or trained, or XLA's GPU
+autotuner had no memory to try its kernels in, or a GPU that another process holds has too little free for the
+compiled epoch; the last good checkpoint is kept).
 """
 
 from __future__ import annotations
@@ -164,7 +165,7 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
             if loaded:
                 log(f"the traced epoch program loaded from {exported.path_of(where, key)}")
         except Exception as err:  # a program jax.export refuses: traced as before
-            if memory.exhausted(err):
+            if memory.device_failure(err):  # out of memory, or no memory to autotune in: the same again if traced
                 raise
             log(f"the epoch is traced in this process ({type(err).__name__}: {runfiles.first_line(err, 120)})")
     if compiled is None:
@@ -359,7 +360,7 @@ def train(
         except BaseException as err:
             checkpoints.abandon()
             runfiles.close_quietly(bar.close, log.close, checkpoints.close)
-            if memory.exhausted(err):  # the device ran out of memory: one line, the last good checkpoint kept
+            if memory.device_failure(err):  # the device ran out of memory: one line, the last good checkpoint kept
                 raise memory.ran_out(f"training epoch {e}", err, checkpoints.last_good()) from None
             raise
         with rundir.disk_errors(f"closing the run's files in {run.run_dir}", checkpoints.last_good()):
