@@ -121,7 +121,7 @@ def build(
         state, step = _restore(run.run_dir, programs, fresh_buffer=fresh_buffer)
         if fresh_buffer:
             log(f"resuming epoch {step} with an empty replay buffer (--fresh-buffer: the checkpoint's is not restored)")
-        compiled = _compile(programs, config, env, state, log)
+        compiled = _compile(programs, config, env, state, log, resume=True)
     else:
         (state, compiled), step = _initial_state_and_epoch(programs, config, env, log), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
@@ -150,11 +150,12 @@ def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Calla
         return initial.result(), compiled
 
 
-def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:
+def _compile(programs: Programs, config: Config, env, state, log: Callable, resume: bool = False) -> Callable:
     """The compiled epoch for `state` (arrays, or their shapes, dtypes and shardings): through `exported` where it
     applies (one device, one env shard, one process, a persistent compilation cache; a line says when the traced
     program was loaded), else traced and compiled. ConfigError when it needs more of a device's memory than the
-    device has (`memory.check_program`): refused before it trains."""
+    device has (`memory.check_program`; a `resume`d run is told to resume on a larger device): refused before it
+    trains."""
     where = exported.folder()
     compiled = None
     if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1 \
@@ -171,7 +172,7 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
     if compiled is None:
         compiled = programs.epoch.lower(state).compile()
         stats = memory.analysis(compiled)
-    memory.check_program(stats, memory.device_memory())
+    memory.check_program(stats, memory.device_memory(), resume)
     return compiled
 
 

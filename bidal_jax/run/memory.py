@@ -101,13 +101,17 @@ def more_of_the_gpu() -> str:
     return f"; or give JAX more of the GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, now {fraction:g})"
 
 
-def check_state(needed: int, available: int, seeds: int) -> None:
+RESUME_ELSEWHERE = "a resumed run keeps its checkpoint's config: resume it on a device with more memory"
+
+
+def check_state(needed: int, available: int, seeds: int, resume: bool = False) -> None:
     """Refuse a training state whose share on one device (`needed` bytes) cannot fit in `MEMORY_SHARE` of that
-    device's memory (`available` bytes)."""
+    device's memory (`available` bytes); a `resume`d run (its checkpoint's config) is to resume on a larger one."""
     if needed > MEMORY_SHARE * available:
+        advice = RESUME_ELSEWHERE if resume else "use fewer seeds, envs or --buffer-episodes"
         raise ConfigError(
             f"--seeds {seeds}: the training state needs {needed / GIB:,.1f} GiB, more than {MEMORY_SHARE:.0%} of the "
-            f"device's {available / GIB:,.1f} GiB; use fewer seeds, envs or --buffer-episodes{more_of_the_gpu()}"
+            f"device's {available / GIB:,.1f} GiB; {advice}{more_of_the_gpu()}"
         )
 
 
@@ -215,8 +219,7 @@ def check_floor(least: Floor, available: int, config: Config, resume: bool = Fal
     taken = shared_gpu_line(least.needed)
     if taken:
         raise OutOfMemory(taken)
-    advice = ("a resumed run keeps its checkpoint's config: resume it on a device with more memory" if resume
-              else f"use {reduce}")
+    advice = RESUME_ELSEWHERE if resume else f"use {reduce}"
     raise ConfigError(
         f"{what}: the training program needs at least {least.needed / GIB:,.1f} GiB of device memory, from its "
         f"shapes before compiling (the state {least.state / GIB:,.1f} GiB and {part}), more than "
@@ -361,10 +364,11 @@ def program_bytes(stats: Any) -> tuple[int, int] | None:
     return int(stats.argument_size_in_bytes) + working + outputs, working
 
 
-def check_program(stats: Any, available: int) -> None:
+def check_program(stats: Any, available: int, resume: bool = False) -> None:
     """Refuse (ConfigError) a compiled epoch whose memory on one device (`program_bytes` of its `memory_analysis()`,
-    `stats`) is more than `MEMORY_SHARE` of the device's `available` bytes; nothing when there is no analysis. On a
-    GPU that another process holds, the line says how much is free and how to share it (`OutOfMemory`, exit 6)."""
+    `stats`) is more than `MEMORY_SHARE` of the device's `available` bytes; nothing when there is no analysis. A
+    `resume`d run is to resume on a larger device; on a GPU that another process holds, the line says how much is
+    free and how to share it (`OutOfMemory`, exit 6)."""
     sizes = program_bytes(stats)
     if sizes is not None and sizes[0] > MEMORY_SHARE * available:
         needed, working = sizes
@@ -374,7 +378,7 @@ def check_program(stats: Any, available: int) -> None:
         raise ConfigError(
             f"the training program needs {needed / GIB:,.1f} GiB of device memory at once (its epoch's working "
             f"memory {working / GIB:,.1f} GiB beside the state), more than {MEMORY_SHARE:.0%} of the device's "
-            f"{available / GIB:,.1f} GiB; {REDUCE}{more_of_the_gpu()}"
+            f"{available / GIB:,.1f} GiB; {RESUME_ELSEWHERE if resume else REDUCE}{more_of_the_gpu()}"
         )
 
 

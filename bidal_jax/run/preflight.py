@@ -159,7 +159,7 @@ def prepare(
         transfer.check(config, state, env.observation_spec.proprio_segments, make_env)
     whole = memory.tree_bytes(state)  # every seed's: what a checkpoint holds
     available, seed_devices = memory.device_memory(), len(programs.devices) // programs.shards
-    memory.check_state(whole // len(programs.devices), available, run.seeds)
+    memory.check_state(whole // len(programs.devices), available, run.seeds, resume)
     least = memory.floor(config, env, whole // len(programs.devices), run.seeds // seed_devices, programs.shards)
     memory.check_floor(least, available, config, resume)
     rundir.check_space(run.run_dir, whole)
