@@ -332,3 +332,17 @@ def test_a_run_that_does_not_fit_beside_another_process_is_refused_at_its_start_
         "XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 for each of two runs started together, or a grid's --gpus-per-cell 0.5")
     assert cli.failure(refused.value)[0] == cli.EXIT_MEMORY
     memory.check_floor(memory.Floor(2 * GiB, 10 * GiB, GiB), 16 * GiB, config)  # it fits: nothing said
+
+
+def test_envs_that_do_not_divide_across_the_devices_train_on_fewer_and_the_compile_line_says_why(monkeypatch):
+    """`--env-shards 4` with 6 envs: a split must divide the envs, so 2 devices split them (`devices.device_layout`),
+    and the run's compile line says why not 4, rather than leave 2 devices idle unexplained."""
+    monkeypatch.setattr(loop, "_initial_state_and_epoch", lambda *args: (None, None))
+    config = resolve({"env": "planar_reach", "agent": "proprio_baseline", "num_envs": 6, "eval_envs": 4,
+                      "batch_size": 8, "env_shards": 4})
+    programs = loop.Programs(None, None, None, [types.SimpleNamespace(platform="cpu")] * 2, 2, 0, 1)
+    lines = []
+    loop.build(types.SimpleNamespace(backend="jax"), config, programs, False, log=lines.append)
+    assert lines[0] == ("compiling the training program (planar_reach, proprio_baseline, 1 seed(s) on 2 device(s), "
+                        "envs split 2 ways (--env-shards 4: a split divides --num-envs 6, --eval-envs 4 and the "
+                        "batch's 8 runs, over the devices the seeds leave)) ...")
