@@ -63,7 +63,8 @@ EXHAUSTED = ("RESOURCE_EXHAUSTED", "Out of memory", "out of memory")
 # how XLA's GPU autotuner says it could try none of a kernel's candidates (it runs them in the memory JAX leaves)
 AUTOTUNING = ("Failed to get configs", "No candidates could be compiled", "Autotuning failed", "autotuner")
 # what a GPU shared with another process keeps free beside JAX's share (`share_gpu`): the autotuner's trials and
-# this process's CUDA context; at least this many bytes, or this part of the free memory if more
+# this process's CUDA context; JAX's share stands where this many bytes stay free beside it, else JAX takes what is
+# free less this many bytes, or this part of the free memory if more
 HEADROOM, HEADROOM_SHARE = 2 * 2**30, 0.2
 # bytes other processes may hold on a GPU before it counts as shared (their CUDA contexts alone stay below it)
 OTHERS_HOLD = 2 * 2**30
@@ -305,9 +306,9 @@ def share_gpu(log: Callable[[str], None] = lambda line: print(line, file=sys.std
         return
     gpu = min(visible, key=lambda g: g.free)
     fraction = gpu_fraction()
-    spare = max(HEADROOM, HEADROOM_SHARE * gpu.free)
-    if fraction * gpu.total <= gpu.free - spare:
+    if fraction * gpu.total <= gpu.free - HEADROOM:  # JAX's share is free (e.g. two grid cells of 0.45 each)
         return
+    spare = max(HEADROOM, HEADROOM_SHARE * gpu.free)
     share = max(math.floor(100 * max(gpu.free - spare, 0) / gpu.total) / 100, 0.01)
     name = next((name for name in FRACTION_VARIABLES[::-1] if os.environ.get(name)), FRACTION_VARIABLES[0])
     os.environ[name] = f"{share:.2f}"

@@ -309,10 +309,14 @@ def test_jax_takes_what_is_free_of_a_gpu_that_others_hold(smi, monkeypatch):
     monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", "0.5")  # JAX's newer name: the one changed (both at once fail)
     memory.share_gpu(lines.append)
     assert os.environ["XLA_CLIENT_MEM_FRACTION"] == "0.20" and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in os.environ
-    monkeypatch.setattr(memory, "_backend_started", lambda: True)  # too late: JAX holds its share
-    monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", "0.5")
+    monkeypatch.setattr(memory, "gpus", lambda: [memory.Gpu("0", 43 * GiB, 80 * GiB)])
+    monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", "0.45")  # the second of two grid cells on a GPU: its share is free
     memory.share_gpu(lines.append)
-    assert os.environ["XLA_CLIENT_MEM_FRACTION"] == "0.5"
+    assert os.environ["XLA_CLIENT_MEM_FRACTION"] == "0.45" and len(lines) == 2
+    monkeypatch.setattr(memory, "_backend_started", lambda: True)  # too late: JAX holds its share
+    monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", "0.9")
+    memory.share_gpu(lines.append)
+    assert os.environ["XLA_CLIENT_MEM_FRACTION"] == "0.9" and len(lines) == 2
 
 
 def test_a_run_that_does_not_fit_beside_another_process_is_refused_at_its_start_with_exit_6(monkeypatch):
