@@ -165,12 +165,15 @@ def transition_bytes(config: Config, env: Any) -> int:
 
 def env_bytes(config: Config, env: Any) -> tuple[int, int]:
     """(bytes of one env step, bytes of one env's recorded episode), at least: the physics state in and out of a
-    step (`env.blank_data()`'s arrays, twice) and for an image agent the camera's supersampled rays (each ray's
+    step (MJX-JAX's `mjx.Data` of the env's model, twice, whichever engine steps it: MuJoCo Warp's data holds every
+    world's contacts at once) and for an image agent the camera's supersampled rays (each ray's
     nearest distance, float32, and geom id, int32: `env.camera`, 84×84 rays for the 42×42 frame); the episode's
     T + 1 observations (frame, proprio, goals) and actions, twice (the rollout's records and the episodes built
     from them)."""
+    from mujoco import mjx  # (MuJoCo's, loaded with the envs; not on every import of this module)
+
     spec = env.observation_spec
-    step = 2 * tree_bytes(env.blank_data())
+    step = 2 * tree_bytes(jax.eval_shape(lambda: mjx.make_data(env.mj_model)))  # shapes: nothing allocated
     observation = 4 * (spec.proprio_size + 2 * spec.goal_size + env.action_size)
     if config.agent.uses_image:
         step += 8 * env.camera.rays_per_side**2
