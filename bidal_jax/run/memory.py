@@ -328,8 +328,9 @@ def _own_bytes() -> int:
 
 def shared_gpu_line(needed: int | None = None) -> str | None:
     """The one line of a run that its GPU has too little free memory for because other processes hold it: the GPU's
-    free memory, what the run needs (`needed` bytes, where known) and how to share a GPU; None on a CPU, or where no
-    other process holds more than `OTHERS_HOLD` of the GPU."""
+    free memory, what the run needs (`needed` bytes, where known) and how to share a GPU; None on a CPU, where no
+    other process holds more than `OTHERS_HOLD` of the GPU, or where the run would not fit the GPU alone either
+    (`needed` more than `MEMORY_SHARE` of `FULL_GPU_FRACTION` of it: its sizes are to reduce)."""
     if jax.local_devices()[0].platform != "gpu":
         return None
     visible = gpus()
@@ -337,7 +338,7 @@ def shared_gpu_line(needed: int | None = None) -> str | None:
         return None
     gpu = min(visible, key=lambda g: g.free)
     others = gpu.total - gpu.free - _own_bytes()
-    if others <= OTHERS_HOLD:
+    if others <= OTHERS_HOLD or (needed and needed > MEMORY_SHARE * FULL_GPU_FRACTION * gpu.total):
         return None
     needs = f"this run needs at least {needed / GIB:,.1f} GiB" if needed else "this run needs more"
     return (f"GPU {gpu.index} is shared: other processes hold {others / GIB:,.1f} GiB of its {gpu.total / GIB:,.1f} "

@@ -336,6 +336,8 @@ def test_a_run_that_does_not_fit_beside_another_process_is_refused_at_its_start_
         "XLA_PYTHON_CLIENT_MEM_FRACTION=0.45 for each of two runs started together, or a grid's --gpus-per-cell 0.5")
     assert cli.failure(refused.value)[0] == cli.EXIT_MEMORY
     memory.check_floor(memory.Floor(2 * GiB, 10 * GiB, GiB), 16 * GiB, config)  # it fits: nothing said
+    with pytest.raises(ConfigError, match=r"^--batch-size 256: .* needs at least 102\.0 GiB"):  # not even alone
+        memory.check_floor(memory.Floor(2 * GiB, 100 * GiB, GiB), 16 * GiB, config)
 
 
 def test_envs_that_do_not_divide_across_the_devices_train_on_fewer_and_the_compile_line_says_why(monkeypatch):
