@@ -18,7 +18,8 @@ A GPU that other processes hold: a command line calls `share_gpu` before JAX sta
 share of the GPU is not free (another run holds it), JAX takes what is free instead, less room for XLA's autotuner
 (`HEADROOM`), and says so in a line; a run that does not fit in it is refused at its start (`OutOfMemory`, exit 6,
 `shared_gpu_line`: the memory free, what the run needs, how to share a GPU). The GPU's free memory is NVML's
-(`pynvml`, where installed) or `nvidia-smi`'s (`gpus`), read in a child process that is spawned, not forked.
+(`pynvml`, where installed) or `nvidia-smi`'s (`gpus`, a child process that `subprocess` starts without a
+fork of this process, so JAX's threads raise no fork warning).
 
 What XLA still cannot allocate while a program compiles or runs (its estimate is not the allocator's, other
 processes share the device) raises `RESOURCE_EXHAUSTED` (`exhausted`), and its GPU autotuner fails where the memory
