@@ -24,6 +24,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -110,11 +111,12 @@ def build(
     run = config.run
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
-    if run.env_shards > programs.shards:  # fewer than asked: say why, rather than leave devices idle unexplained
-        train = config.train
+    train = config.train
+    runs = train.batch_size // train.sample_run
+    if run.env_shards > programs.shards and math.gcd(train.num_envs, train.eval_envs, runs) % run.env_shards:
+        # fewer splits than asked because the sizes do not divide: say so, rather than leave devices idle unexplained
         shards += (f"{', not split' if programs.shards == 1 else ''} (--env-shards {run.env_shards}: a split divides "
-                   f"--num-envs {train.num_envs}, --eval-envs {train.eval_envs} and the batch's "
-                   f"{train.batch_size // train.sample_run} runs, over the devices the seeds leave)")
+                   f"--num-envs {train.num_envs}, --eval-envs {train.eval_envs} and the batch's {runs} runs)")
     engine = ", physics on MuJoCo Warp" if env.backend == "warp" else ""
     if env.backend == "jax" and run.physics == "auto" and programs.devices[0].platform == "gpu":
         engine = f", physics on MJX-JAX: MuJoCo Warp not used, {warp_problem(programs.devices)}"
