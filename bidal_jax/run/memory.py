@@ -194,7 +194,7 @@ def floor(config: Config, env: Any, state: int, seeds: int, shards: int) -> Floo
     `memory_analysis()` of the compiled epoch is 1.7 to 10 times it where it grows with the sizes (XLA:CPU's):
     planar_reach multimodal_bidal, 193 KB a transition of the batch against the floor's 62 KB, 857 KB an env of
     its rollout against 244 KB; proprio_baseline 5.2 KB a transition against 3.1 KB; nicol_slide multimodal_bidal
-    with 64 envs, 323 MB in all against 36 MB; and on an H200, the paper's noise program (nicol_slide
+    with 64 envs, 323 MB in all against 36 MB; and on a GPU, the paper's noise program (nicol_slide
     multimodal_bidal, 15 seeds) 94.6 GiB in all against the floor's 33 GiB. So the floor refuses no
     program that XLA's estimate (`check_program`) would let train, and refuses in a second the sizes far beyond
     the device (planar_reach's --batch-size 4000000 needs at least 212 GiB), which XLA's GPU compiler may not
