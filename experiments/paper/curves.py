@@ -57,10 +57,12 @@ trains nothing and writes only these, e.g. from run folders whose checkpoints we
 none: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
-line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
-written), or a run folder with a damaged file (one line naming it: the experiment stops rather than take the
-run for one never trained); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143
-stopped by SIGINT and SIGTERM (a checkpoint was saved; Ctrl-C before a run trains: nothing saved).
+line, nothing written), or a stale run (one `error: ...` line, nothing trained), or a run folder with a damaged file
+(one line naming it: the experiment stops rather than take the run for one never trained); 3 diverged; 4 the disk (a
+run's write, or table.md or the figure); 6 out of device memory; 130 and 143 stopped by SIGINT and SIGTERM (a
+checkpoint was saved; Ctrl-C before a run trains: nothing saved). A refusal or a failed run ends the command with its
+error as the last line (with `--ray`, the line listing the cells that failed): nothing is plotted or tabled after it;
+`--report` writes the table and figure from the runs that have epochs.
 """
 
 from __future__ import annotations
@@ -249,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         blocks = [block for cell in cells for block in grid.blocks(cell)]
     except ConfigError as err:
         return cli.exit_code(err)
-    code, envs = 0, None
+    envs = None
     try:
         if not args.report:
             envs = grid.make_envs(blocks)
@@ -258,6 +260,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(grid.DRY_RUN)
                 return 0
             code = grid.train_arms(blocks, envs, args, out)
+            if code:  # a refusal or a failed run ends the command on its error line (`--report` writes the table)
+                return code
         variant = f", {LIFT} without held starts" if out.endswith(grid.PLAIN) else ""
         title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
         if multihost.is_main():  # one process writes the results
@@ -267,9 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             grid.write_table(out, plot_results(out, cells, title, args.last_n, today,
                                                regenerate_command(args, rest, out)))
     except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)
-        failed = cli.exit_code(err)
-        return code or failed
-    return code
+        return cli.exit_code(err)
+    return 0
 
 
 if __name__ == "__main__":

@@ -38,7 +38,7 @@ from bidal_jax.config import (
     recorded,
     resolve,
 )
-from bidal_jax.run import checkpoint, rundir, runfiles, validate
+from bidal_jax.run import checkpoint, memory, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
 from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS, EPOCHS, TASKS
@@ -406,6 +406,7 @@ def train_cell(payload: tuple[Arm, bool]) -> tuple[int, str | None]:
     it failed, its one line (`cli.failure`), which the driver reports."""
     arm, fresh_buffer = payload
     try:
+        memory.share_gpu()  # before the env puts its model on the GPU: JAX takes what is free of a shared GPU
         train_arm(arm, envs_mjx.make(arm.given["env"], render=arm.config.agent.uses_image), True, fresh_buffer)
     except cli.FAILURES as err:
         return cli.failure(err)

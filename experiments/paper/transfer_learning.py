@@ -51,7 +51,9 @@ done or stale) and its estimated time (`grid.estimated_plan`), and trains and wr
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
 line), or a run folder with a damaged file (one line naming it; the experiment stops on it); 3 diverged; 4 the
-disk (a run's write, or table.md or the figure); 130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved).
+disk (a run's write, or table.md or the figure); 6 out of device memory; 130 and 143 stopped by SIGINT and SIGTERM (a
+checkpoint was saved). A refusal or a failed run ends the command with its error as the last line: nothing is
+plotted or tabled after it (`--arms none` writes the results of the runs that have epochs).
 """
 
 from __future__ import annotations
@@ -295,7 +297,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         refuse_unfinished_source(arms, train_names)
         code = grid.train_arms([arm for arm in arms if arm.name in train_names], envs, args, out)
     except ConfigError as err:
-        code = cli.exit_code(err)
+        return cli.exit_code(err)
+    if code:  # a refusal or a failed run ends the command on its error line (`--arms none` writes the table)
+        return code
     variant = ", no held starts" if out.endswith(grid.PLAIN) else ""
     title = f"from scratch vs. from {SOURCE_ENV} ({args.seeds} seeds{variant})"  # the panel names the task
     if multihost.is_main():  # one process writes the results
@@ -305,9 +309,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             command = regenerate_command(args, out)
             grid.write_table(out, text and f"{text}\nRegenerate from the run folders: `{command}`\n")
         except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)
-            failed = cli.exit_code(err)
-            return code or failed
-    return code
+            return cli.exit_code(err)
+    return 0
 
 
 if __name__ == "__main__":
