@@ -435,13 +435,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(grid.estimated_plan(chosen, envs, f"plan: {len(chosen)} runs"), flush=True)
             waiting = to_probe(chosen, read_probes(args.out))
             if args.dry_run:
-                print(f"probe: {len(waiting)} cell(s) at their epochs to probe now"
-                      + ("" if args.no_probe else f" ({args.probe_episodes} scripted episodes of frames)"))
+                print("probe: none (--no-probe)" if args.no_probe else f"probe: {len(waiting)} cell(s) at their epochs "
+                      f"to probe now ({args.probe_episodes} scripted episodes of frames)")
                 print(grid.DRY_RUN)
                 return 0
             statuses = [grid.status(arm, envs[arm.name].physics_id).state for arm in chosen]
             code = grid.train_arms(chosen, envs, args, args.out)
-            waiting = to_probe(chosen, read_probes(args.out)) if not args.no_probe else []
+            # a failed or stopped grid probes nothing: run the same command again
+            waiting = to_probe(chosen, read_probes(args.out)) if code == 0 and not args.no_probe else []
             if waiting and cluster.wanted(args):
                 print(f"probe: {len(waiting)} cell(s) to probe: run the same command without --ray (this process keeps "
                       "JAX on the CPU under Ray)")

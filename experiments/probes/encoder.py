@@ -92,7 +92,7 @@ def random_encoder(like: Encoding, env) -> Encoding:
     networks = like.config.agent.networks(like.config.network, spec.proprio_size, spec.goal_size, env.action_size,
                                           spec.image_shape)
     keys = jnp.arange(like.seeds) + RANDOM_KEY
-    params = jax.vmap(lambda k: networks.init(jax.random.PRNGKey(k))["encoder"])(keys)
+    params = jax.jit(jax.vmap(lambda k: networks.init(jax.random.PRNGKey(k))["encoder"]))(keys)
     return like._replace(params=params)
 
 
