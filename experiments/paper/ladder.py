@@ -51,6 +51,7 @@ import subprocess
 import sys
 from typing import Any, NamedTuple, Sequence
 
+import jax
 import numpy as np
 
 import envs_mjx
@@ -60,6 +61,7 @@ from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import DEFAULT_SEED, EPOCHS
+from experiments.probes import encoder
 
 PROG = "python -m experiments.paper.ladder"
 TASK = "nicol_slide"
@@ -160,10 +162,6 @@ def to_probe(arms: Sequence[Arm], probes: dict) -> list[Arm]:
 def probe_arms(arms: Sequence[Arm], out: str, episodes: int, seed: int) -> None:
     """Probe the encoders of `arms` (`to_probe`'s) and of their random initialisations (`experiments.probes.encoder`)
     on one set of frames, writing OUT/probe.json after each cell."""
-    import jax
-
-    from experiments.probes import encoder
-
     probes = read_probes(out)
     env = envs_mjx.make(TASK, render=True)
     print(f"probe: rendering the frames of {episodes} scripted {TASK} episodes", flush=True)
@@ -185,9 +183,11 @@ def probe_arms(arms: Sequence[Arm], out: str, episodes: int, seed: int) -> None:
         print(f"probe: {arm.name}: {probe_summary(probes[arm.name], 'trained', 'phi')}", flush=True)
 
 
-def axes(values: list[list[float]], digits: int = 2) -> str:
-    """Per-seed values [S][3] as their mean over seeds per axis, "x, y, z"."""
-    return ", ".join(f"{v:.{digits}f}" for v in np.mean(values, axis=0))
+def axes(values: list[list[float | None]], digits: int = 2) -> str:
+    """Per-seed values [S][3] as their mean over seeds per axis, "x, y, z"; "—" for an axis without a value (an R² the
+    probe leaves undefined: a target that hardly varies along it)."""
+    columns = zip(*values)
+    return ", ".join("—" if None in column else f"{np.mean(column):.{digits}f}" for column in columns)
 
 
 def probe_summary(entry: dict, encoding: str, features: str) -> str:

@@ -14,7 +14,9 @@ of some scripted nicol_slide episodes and tested on the frames of others: R² an
   normaliser, for the multimodal ones); and `image`, the vision branch's output (its dense layer, before the fusion
   with proprio): what the image alone gives the encoder, separable in every agent.
 - Ridge (`ridge_probe`): features standardised by the training frames; the penalty chosen from `ALPHAS` by the error
-  on the last `HELD_OUT` share of the training episodes, then refitted on all of them (closed form).
+  on the last `HELD_OUT` share of the training episodes, then refitted on all of them (closed form). An axis along
+  which the held-out target hardly varies (std below `MIN_SPREAD`: the height of a cube that slides) gets no R²,
+  only its RMSE.
 - Against the same architecture randomly initialised (`random_encoder`: the agent's own init, `Networks.init`, with
   fixed keys, and the trained run's normaliser): what the architecture and the frames give without learning.
 """
@@ -42,6 +44,7 @@ HELD_OUT = 0.2  # share of the episodes tested on (and of the training episodes 
 ALPHAS = tuple(10.0 ** k for k in range(-3, 5))  # ridge penalties tried, on standardised features
 RANDOM_KEY = 1000  # the random encoders' keys: RANDOM_KEY + seed index
 BATCH = 1024  # frames encoded at once
+MIN_SPREAD = 0.005  # m: a held-out target axis with a smaller std gets no R² (`r2`)
 
 
 class Frames(NamedTuple):
@@ -147,8 +150,11 @@ def ridge_fit(x: np.ndarray, y: np.ndarray, alpha: float):
 
 
 def r2(pred: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The coefficient of determination per column [T]: 1 − residual / total sum of squares about y's mean."""
-    return 1.0 - ((y - pred) ** 2).sum(0) / np.maximum(((y - y.mean(0)) ** 2).sum(0), 1e-12)
+    """The coefficient of determination per column [T]: 1 − residual / total sum of squares about y's mean; NaN for
+    a column whose std is below `MIN_SPREAD` (e.g. the height of a cube that stays on the table), where it says
+    nothing."""
+    total = ((y - y.mean(0)) ** 2).sum(0)
+    return np.where(y.std(0) < MIN_SPREAD, np.nan, 1.0 - ((y - pred) ** 2).sum(0) / np.maximum(total, 1e-12))
 
 
 def ridge_probe(x: np.ndarray, y: np.ndarray, episode: np.ndarray) -> dict[str, np.ndarray]:
@@ -168,7 +174,8 @@ def ridge_probe(x: np.ndarray, y: np.ndarray, episode: np.ndarray) -> dict[str, 
 
 def probe(encoding: Encoding, frames: Frames, segments: tuple[str, ...]) -> dict:
     """Each seed's probe of every `TARGETS` segment from every `FEATURES` set of `encoding` on `frames` (its encoder
-    reading the proprio `segments`): {feature set: {target: {"r2": [S][3], "rmse_cm": [S][3]}}}, JSON-ready."""
+    reading the proprio `segments`): {feature set: {target: {"r2": [S][3], "rmse_cm": [S][3]}}}, JSON-ready (an R²
+    that `r2` leaves undefined is None)."""
     found = features(encoding, frames, segments)
     out = {}
     for name, x in found.items():
@@ -176,6 +183,6 @@ def probe(encoding: Encoding, frames: Frames, segments: tuple[str, ...]) -> dict
         for target in TARGETS:
             y = frames.proprio[:, frames.spec.segment_slice(target)].astype(np.float64)
             seeds = [ridge_probe(x_seed, y, frames.episode) for x_seed in x]
-            out[name][target] = {"r2": [s["r2"].round(4).tolist() for s in seeds],
+            out[name][target] = {"r2": [[None if np.isnan(v) else round(float(v), 4) for v in s["r2"]] for s in seeds],
                                  "rmse_cm": [(100 * s["rmse"]).round(3).tolist() for s in seeds]}
     return out

@@ -116,3 +116,7 @@ def test_the_record_adds_each_new_command_once():
     again = ladder.section(ladder.section(first, {}, "b"), {}, "a")
     assert again["command"] == "a; b" and again["date"] == first["date"] and again["commit"] == first["commit"]
     assert ladder.section(again, {}, None)["command"] == "a; b"
+
+
+def test_an_axis_without_r2_reads_as_a_dash():
+    assert ladder.axes([[0.5, None, 0.25], [0.7, None, 0.75]]) == "0.60, —, 0.50"

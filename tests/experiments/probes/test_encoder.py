@@ -47,6 +47,12 @@ def test_ridge_recovers_a_linearly_encoded_target_and_not_noise():
     assert np.all(noise["r2"] < 0.2) and noise["alpha"] in encoder.ALPHAS
 
 
+def test_r2_is_undefined_along_an_axis_that_hardly_varies():
+    y = np.stack([np.linspace(0.0, 1.0, 50), np.full(50, 0.825) + 1e-4 * np.sin(np.arange(50))], axis=1)
+    found = encoder.r2(y + 0.01, y)
+    assert found[0] == pytest.approx(1.0 - 1e-4 / y[:, 0].var()) and np.isnan(found[1])
+
+
 @pytest.mark.parametrize("agent, segments", [("visual_bidal", ()), ("multimodal_baseline", ("ee_pos",))])
 def test_a_tiny_random_encoder_gives_finite_figures_per_seed_and_axis(frames, agent, segments):
     config = resolve({"env": "nicol_slide", "agent": agent, **TINY})
