@@ -294,6 +294,8 @@ SECONDS = {
     "nicol_lift": {"image": (17.68, 81.2), "image_baseline": (13.06, 181.6), "proprio": (4.69, 41.6)},
 }
 SECONDS["nicol_lift_reduced"] = SECONDS["nicol_lift"]  # the transfer target: nicol_lift's preset, not timed apart
+# the ladder's variants of nicol_slide (experiments.paper.ladder): its preset, less proprio; not timed apart
+SECONDS["nicol_slide_ee"] = SECONDS["nicol_slide_ee_obj"] = SECONDS["nicol_slide"]
 
 
 def kind(task: str, agent: str) -> str:

@@ -28,7 +28,7 @@ import numpy as np
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
-from experiments.paper import grid, protocol
+from experiments.paper import grid, ladder, protocol
 
 PROG = "python -m experiments.paper.results_docs"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -36,8 +36,8 @@ DOC = os.path.join("docs", "results.md")
 PARTS = ("Performance", "Learning (paper Fig. 4)", "Noise (paper Table II)", "Transfer (paper Fig. 6)",
          "Reliability")
 # the folders of results/ in the order of their sections; each is linked from its sections
-FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "noise",
-           "noise_probe", "transfer", "reliability")
+FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "ladder",
+           "noise", "noise_probe", "transfer", "reliability")
 FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
 LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
 ENGINES = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}
@@ -249,10 +249,16 @@ def resumed_table(root: str, runs: str) -> str:
                                   "epochs without a row in metrics.csv"], rows)
 
 
+def ladder_table(root: str, runs: str) -> str:
+    """The pixel agents' ladder (`experiments.paper.ladder`) in root/runs: its rungs' success, the rung that closes
+    the gap, the probe of the visual agents' φ; "not run" where its runs or its probe are not there yet."""
+    return ladder.docs_table(os.path.join(root, runs))
+
+
 TABLES: dict[str, Callable[[str, object], str]] = {
     "epochs": epochs_table, "floors": floors_table, "curves": curves_table, "pilots": pilots_table,
     "lambda": lambda_table, "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table,
-    "transfer": transfer_table, "resumed": resumed_table,
+    "transfer": transfer_table, "resumed": resumed_table, "ladder": ladder_table,
 }
 
 
