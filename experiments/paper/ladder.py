@@ -66,7 +66,7 @@ from experiments.probes import encoder
 PROG = "python -m experiments.paper.ladder"
 TASK = "nicol_slide"
 DEFAULT_OUT = os.path.join("results", "ladder")
-DEFAULT_SEEDS = 3
+DEFAULT_SEEDS = 5  # the image rung is also the visual agents' 5-seed pilot on the task
 LAST_N = 10
 CLOSE = 0.05  # a rung closes the gap when its final success is at least the top rung's less this
 PROBE_EPISODES = 200  # scripted episodes of the probe's frames: 10,000 frames, a fifth of the episodes held out
@@ -115,6 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = grid.experiment_parser(PROG, __doc__, "every run")
     parser.add_argument("--rungs", default=",".join(r.name for r in RUNGS),
                         help=f"comma list of the rungs to train (default all: {', '.join(r.name for r in RUNGS)})")
+    parser.add_argument("--agents", default=",".join(dict.fromkeys(VISUAL + MULTIMODAL)),
+                        help="comma list of the agents to train of the chosen rungs (default all), e.g. one column, or "
+                        "one agent a process so that two processes share a GPU")
     parser.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, help="seeds of every cell, vmapped as one program")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="first random seed of every run")
     parser.add_argument("--epochs", type=int, default=None,
@@ -425,7 +428,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.probe_episodes < 5:
             raise ConfigError(f"--probe-episodes {args.probe_episodes}: must be an integer >= 5")
         arms = grid.checked_arms(ladder_arms(RUNGS, args.seeds, args.seed, args.epochs, extra, args.out), args.last_n)
-        chosen = [arm for arm in arms if arm.name.split("/")[0] in names]
+        agents = cli.parse_names(args.agents, "--agents", "agent", VISUAL + MULTIMODAL)
+        chosen = [arm for arm in arms if arm.name.split("/")[0] in names and arm.given["agent"] in agents]
     except ConfigError as err:
         return cli.exit_code(err)
     code, command = 0, None

@@ -46,8 +46,18 @@ def test_dry_run_lists_every_cell_and_writes_nothing(tmp_path, no_nicol, capsys)
     assert lines[-1] == "dry run: nothing trained or written"
 
 
+def test_agents_choose_the_cells_of_the_chosen_rungs(tmp_path, no_nicol, capsys):
+    argv = ["--dry-run", *EXPERIMENT, "--rungs", "image,ee", "--agents", "visual_bidal,multimodal_bidal"]
+    assert ladder.main([*argv, "--out", str(tmp_path / "out")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "plan: 2 runs"
+    assert [line.split(":")[0] for line in lines[1:3]] == ["image/visual_bidal", "ee/multimodal_bidal"]
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["--rungs", "image,nope"], "error: --rungs image,nope: unknown rung 'nope'; allowed: image, ee, ee_obj, proprio"),
+    (["--agents", "visual_bidal,x"], "error: --agents visual_bidal,x: unknown agent 'x'; allowed: visual_baseline, "
+                                     "visual_bidal, multimodal_baseline, multimodal_bidal"),
     (["--probe-episodes", "2"], "error: --probe-episodes 2: must be an integer >= 5"),
     (["--env", "nicol_lift"], "error: --env: not passed through to the runs (the experiment sets it)"),
 ])
