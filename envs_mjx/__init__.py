@@ -48,6 +48,7 @@ if "mujoco.mjx" not in sys.modules:
     _import_without("mujoco.mjx", _WARP_ABSENT)
 
 from envs_mjx.base import Env, ObservationSpec, State  # noqa: E402 - after the quiet mjx import above
+from envs_mjx.task import Task  # noqa: E402
 
 # XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
 # before the first computation. With its default fusion emitters XLA:CPU compiles MJX
@@ -78,7 +79,8 @@ if importlib.metadata.version("jaxlib") == _FLAGS_JAXLIB:
         if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
             os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
 
-# name -> "module:Class", imported lazily so that building one env never loads the others
+# name -> "module:Class", imported lazily so that building one env never loads the others. A new task is its
+# module (its class, model and `task`: presets, budget, contract) and one line here (docs/usage.md)
 _REGISTRY: dict[str, str] = {
     "planar_reach": "envs_mjx.planar_reach:PlanarReach",
     "ur5_reach": "envs_mjx.ur5_reach:UR5Reach",
@@ -98,12 +100,23 @@ def names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
-def make(name: str, **overrides: Any) -> Env:
-    """Build the environment `name`; keyword overrides go to its constructor."""
+def _registered(name: str) -> Any:
+    """The class or factory registered as `name`, imported, not called; ValueError for an unknown name."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown env {name!r}; valid envs: {', '.join(names())}")
     module_name, class_name = _REGISTRY[name].split(":")
-    return getattr(importlib.import_module(module_name), class_name)(**overrides)
+    return getattr(importlib.import_module(module_name), class_name)
 
 
-__all__ = ["Env", "ObservationSpec", "State", "make", "names", "register"]
+def make(name: str, **overrides: Any) -> Env:
+    """Build the environment `name`; keyword overrides go to its constructor."""
+    return _registered(name)(**overrides)
+
+
+def task(name: str) -> Task:
+    """What the task `name` declares beside its dynamics (its class's `task`: presets, learning-curve budget,
+    contract), without building it; a registered factory without one declares nothing."""
+    return getattr(_registered(name), "task", Task())
+
+
+__all__ = ["Env", "ObservationSpec", "State", "Task", "make", "names", "register", "task"]

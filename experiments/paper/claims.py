@@ -155,7 +155,7 @@ def difference(a: Sequence[np.ndarray], b: Sequence[np.ndarray], digits: int = 3
 
 def load_grid(curves_dir: str) -> dict[tuple[str, str], dict | None]:
     """(task, agent) -> the run in CURVES/<task>/<agent> (`report.load_run`), None where it has no epochs."""
-    return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in protocol.TASKS for a in AGENTS}
+    return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in protocol.paper_tasks() for a in AGENTS}
 
 
 def judged_curve(run: dict) -> tuple[report.Curve, bool]:
@@ -205,7 +205,7 @@ def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int) -> Grid:
 def grid_gaps(runs: dict[tuple[str, str], dict | None], agents: Sequence[str]) -> list[str]:
     """Why the cells of `agents` cannot measure a claim (`gap`): the runs of a claim about those agents alone, so
     that a missing cell of another agent (the λ = 0 ablation's) leaves it measured."""
-    found = [gap(f"{t}/{a}", run, max(protocol.EPOCHS[t], protocol.budget(run) if run else 0))
+    found = [gap(f"{t}/{a}", run, max(protocol.paper_epochs()[t], protocol.budget(run) if run else 0))
              for (t, a), run in runs.items() if a in agents]
     return [g for g in found if g]
 
@@ -221,7 +221,7 @@ def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale
     """Claim (a): six rows, from the curves grid, the last on where a gain of OURS comes from (`reward_claim`)."""
     measured = grid_figures(runs, last_n)
     final = {key: f[FINAL][0] for key, f in measured.figures.items()}
-    tasks = set(protocol.TASKS)
+    tasks = set(protocol.paper_tasks())
     rule = f"learned: final success (mean over seeds of each seed's last {last_n} epochs; {air_note(measured.overall)}"
     rule += f") ≥ {LEARNED}"
     rows = []
@@ -243,7 +243,7 @@ def reward_claim(measured: Grid, gaps: list[str], stale: set[str]) -> Claim:
     """Where a gain of OURS comes from: OURS against ABLATION, the same agent without the intrinsic reward (its
     forward and inverse losses kept), in every measure of `speed` over the tasks both ran. Favoured: the reward
     itself helps; unclear or against: any gain over the baselines is the representation losses'."""
-    tasks = [t for t in protocol.TASKS if (t, OURS) in measured.figures and (t, ABLATION) in measured.figures]
+    tasks = [t for t in protocol.paper_tasks() if (t, OURS) in measured.figures and (t, ABLATION) in measured.figures]
     name, paper = f"(a) {OURS} learns faster than {ABLATION} (λ = 0)", "not tested (the paper has no λ = 0 agent)"
     rule = speed_rule("every check favours").replace("the best other agent in that measure", ABLATION)
     if not tasks:
@@ -303,7 +303,7 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -
     """Claim (a), second part: multimodal BidAL best overall (over the tasks' mean), most clearly on lifting,
     on more seeds that lift."""
     figures = measured.figures
-    tasks = [t for t in protocol.TASKS if (t, OURS) in figures]
+    tasks = [t for t in protocol.paper_tasks() if (t, OURS) in figures]
     names = ((f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
              (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"),
              (f"(a) more of {OURS}'s seeds lift than of any other agent", "especially on lifting (Fig. 4)"))
@@ -614,7 +614,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        stale = set(cli.parse_names(args.stale, "--stale", "task", (*protocol.TASKS, protocol.TARGET_ENV))) \
+        stale = set(cli.parse_names(args.stale, "--stale", "task", (*protocol.paper_tasks(), protocol.TARGET_ENV))) \
             if args.stale else set()
         if args.last_n < 1:
             raise ValueError(f"--last-n {args.last_n}: must be a positive integer")
