@@ -5,7 +5,8 @@ import dataclasses
 
 import pytest
 
-from bidal_jax.config import CONFIG_CLASSES, CONV_IMPLS, REMOVED_CONV_IMPLS, Config, Rule, recorded, resolve
+from bidal_jax.config import CONFIG_CLASSES, CONV_IMPLS, REMOVED_CONV_IMPLS, Config, Rule, recorded
+from experiments.cli import resolve
 
 
 def test_every_config_field_has_its_help_and_rule():

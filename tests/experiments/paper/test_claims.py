@@ -85,14 +85,14 @@ def write_grid(fake_run, out):
     """The curves grid as the paper has it: BidAL agents learn, the visual baseline does not, multimodal
     BidAL leads everywhere by 0.07 and on lifting by 0.37, and rises twice as fast as the others (0.1 an epoch
     against 0.05, up to its level): a larger AUC, fewer env steps to 0.5 and 0.9."""
-    for task in protocol.TASKS:
+    for task in protocol.paper_tasks():
         lift = task == "nicol_lift"
         level = {"multimodal_bidal": 0.97, "multimodal_bidal_no_ri": 0.9, "visual_bidal": 0.7, "visual_baseline": 0.1,
                  "multimodal_baseline": 0.6 if lift else 0.9, "proprio_baseline": 0.5 if lift else 0.85}
         for agent in AGENTS:
             levels = [level[agent] + 0.01 * (i - 2) for i in range(5)]
             rate = 0.1 if agent == claims.OURS else 0.05
-            success = [[min(x, rate * (e + 1)) for x in levels] for e in range(protocol.EPOCHS[task])]
+            success = [[min(x, rate * (e + 1)) for x in levels] for e in range(protocol.paper_epochs()[task])]
             fake_run(str(out / task / agent), task, success, None, agent)
 
 
@@ -146,7 +146,7 @@ def test_learning_claims_not_reproduced_when_the_visual_baseline_learns_a_task(t
     write_grid(fake_run, tmp_path)
     shutil.rmtree(tmp_path / "planar_reach" / "visual_baseline")
     fake_run(str(tmp_path / "planar_reach" / "visual_baseline"), "planar_reach",
-             rows([0.66] * 5, protocol.EPOCHS["planar_reach"]), None, "visual_baseline")
+             rows([0.66] * 5, protocol.paper_epochs()["planar_reach"]), None, "visual_baseline")
     learn, visual, *_ = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
     assert learn.verdict == "reproduced" and visual.verdict == "not reproduced"
     assert visual.ours.startswith("highest: visual_baseline on planar_reach 0.660")
@@ -237,10 +237,10 @@ def test_learning_speed_enters_the_verdict_with_auc_and_steps_intervals(tmp_path
     assert claims.ABLATION not in overall.ours + lift.ours and f"vs {claims.ABLATION}" not in seeds.ours
     assert reward.verdict == "reproduced" and f"over {claims.ABLATION}" in reward.ours
     # the same speed as the best other agent: the steps' intervals straddle 0, so the claim is not reproduced
-    for task in protocol.TASKS:
+    for task, epochs in protocol.paper_epochs().items():
         levels = [0.9 + 0.01 * (i - 2) for i in range(5)]
         fake_run(str(tmp_path / "slow" / task / claims.OURS), task,
-                 [[min(x, 0.05 * (e + 1)) for x in levels] for e in range(protocol.EPOCHS[task])], None, claims.OURS)
+                 [[min(x, 0.05 * (e + 1)) for x in levels] for e in range(epochs)], None, claims.OURS)
         for agent in set(AGENTS) - {claims.OURS}:
             shutil.copytree(tmp_path / task / agent, tmp_path / "slow" / task / agent)
     *_, overall, _, _, _ = claims.learning_claims(claims.load_grid(str(tmp_path / "slow")), 10, set())
@@ -265,7 +265,7 @@ def test_a_missing_cell_leaves_the_claims_about_other_agents_measured(tmp_path, 
 def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
     # multimodal_bidal slides but never lifts: 0.97 overall, 0.1 on air goals
-    with_air(str(tmp_path / "nicol_lift" / claims.OURS), [[0.1] * 5] * protocol.EPOCHS["nicol_lift"])
+    with_air(str(tmp_path / "nicol_lift" / claims.OURS), [[0.1] * 5] * protocol.paper_epochs()["nicol_lift"])
     learn, *_, seeds, _ = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set())
     assert learn.verdict == "not reproduced" and "lowest: multimodal_bidal on nicol_lift 0.100" in learn.ours
     assert f"runs without that column ({', '.join(a for a in AGENTS if a != claims.OURS)})" in learn.rule
