@@ -10,10 +10,10 @@ nicol_slide and nicol_lift) × the agents of `bidal_jax.agents.AGENTS` (the pape
 multimodal BidAL without its intrinsic reward: whether a gain comes from the representation losses or from the
 curiosity reward); `--tasks` and `--agents` (comma lists) take a part of it, and `--tasks` any other registered task
 where `--epochs` gives its budget. Each cell is 5 seeds of one task and agent (`--seeds N` sets every cell's) in
-OUT/<task>/<agent>, trained in blocks of seeds vmapped as one program that each end within 20 minutes on one GPU by
-the plan's estimate (`protocol.BLOCK_SECONDS`, `grid.blocks`): a cell that fits is one run in its folder, a longer
-one is runs in OUT/<task>/<agent>/seeds-A-B with their own first seed, which the table, the figure and the claims
-read as one run of all its seeds (`report.load_run`).
+OUT/<task>/<agent>, trained in blocks of seeds vmapped as one program that each end within `protocol.BLOCK_SECONDS`
+on one GPU by the plan's estimate (`grid.blocks`): a cell that fits is one run in its folder, a longer one is runs
+in OUT/<task>/<agent>/seeds-A-B with their own first seed, which the table, the figure and the claims read as one
+run of all its seeds (`report.load_run`).
 
 Budget: one epoch count per task for every agent, the task's own (its env's `task.paper_epochs`,
 `protocol.paper_epochs`; overridden for all tasks by `--epochs`): planar_reach 100, ur5_reach 150, nicol_slide 30,
