@@ -48,7 +48,6 @@ if "mujoco.mjx" not in sys.modules:
     _import_without("mujoco.mjx", _WARP_ABSENT)
 
 from envs_mjx.base import Env, ObservationSpec, State  # noqa: E402 - after the quiet mjx import above
-from envs_mjx.task import Task  # noqa: E402
 
 # XLA:CPU flags, read once when the CPU backend starts, so they are set here, on import,
 # before the first computation. With its default fusion emitters XLA:CPU compiles MJX
@@ -113,10 +112,10 @@ def make(name: str, **overrides: Any) -> Env:
     return _registered(name)(**overrides)
 
 
-def task(name: str) -> Task:
-    """What the task `name` declares beside its dynamics (its class's `task`: presets, learning-curve budget,
-    contract), without building it; a registered factory without one declares nothing."""
-    return getattr(_registered(name), "task", Task())
+def task(name: str) -> Any:
+    """What the task `name` declares beside its dynamics (its class's `task`, an `envs_mjx.task.Task`: presets,
+    learning-curve budget, contract), without building it; a registered factory without one declares nothing."""
+    return getattr(_registered(name), "task", Env.task)
 
 
-__all__ = ["Env", "ObservationSpec", "State", "Task", "make", "names", "register", "task"]
+__all__ = ["Env", "ObservationSpec", "State", "make", "names", "register", "task"]

@@ -1,5 +1,7 @@
 """What the commands share: the config's options, starting a run, and the exit codes.
 
+- `task_preset(env, agent)`: a task's preset for an agent, read from its env class's `task` (envs_mjx/task.py);
+  `resolve(given)`: a new run's config, the defaults with that preset and `given` laid over them.
 - `run_parser()`: `python -m experiments.run`'s options, one per config field (their help is
   the field's documentation), after what the command does, its agents and tasks with their presets
   (`run_description`); the paper experiments pass their extra options through it.
