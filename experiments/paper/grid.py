@@ -287,6 +287,12 @@ class EpochTime(NamedTuple):
     task: str
 
 
+def read_lines(path: str) -> list[dict]:
+    """The JSON objects of a JSON-lines file (`experiments.bench.sweep --out`)."""
+    with open(path, encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
 def sweep_seconds(lines: Sequence[dict]) -> tuple[float, float]:
     """(seconds per epoch: the mean step of `process_seconds`; compile seconds: the first epoch's `variant_seconds`
     less one epoch) of a sweep's JSON lines, one per epoch (`experiments.bench.sweep --out`)."""
@@ -300,8 +306,7 @@ def measured_epochs(folder: str = EPOCH_SWEEPS) -> dict[tuple[str, str], tuple[f
     several epochs; none where the folder is missing (an installed package without results/)."""
     found = {}
     for name in sorted(os.listdir(folder)) if os.path.isdir(folder) else ():
-        with open(os.path.join(folder, name), encoding="utf-8") as f:
-            lines = [json.loads(line) for line in f if line.strip()] if name.endswith(".jsonl") else []
+        lines = read_lines(os.path.join(folder, name)) if name.endswith(".jsonl") else []
         task, _, agent = name.removesuffix(".jsonl").partition("-")
         if len(lines) > 1 and len(lines[0]["eval_success_seeds"]) == DEFAULT_SEEDS:
             found[task, agent] = sweep_seconds(lines)

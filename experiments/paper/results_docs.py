@@ -53,15 +53,9 @@ over the epochs run. The paper's claims judged on these runs are in [results/cla
 far each verdict bears on the paper in [reproduction.md](reproduction.md)."""
 
 
-def read_lines(path: str) -> list[dict]:
-    """The JSON objects of a JSON-lines file (`experiments.bench.sweep --out`)."""
-    with open(path, encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
-
-
 def sweep_curve(path: str, label: str) -> report.Curve:
     """A sweep's curve (one variant's JSON lines): each epoch's per-seed eval success."""
-    rows = read_lines(path)
+    rows = grid.read_lines(path)
     column = [np.array([row[key] for row in rows], float) for key in ("epoch", "env_steps_per_seed",
                                                                        "process_seconds")]
     return report.Curve("", label, path, *column, np.array([row["eval_success_seeds"] for row in rows], float))
@@ -87,7 +81,7 @@ def epochs_table(root: str, runs: str) -> str:
     rows = []
     for path in glob.glob(os.path.join(root, runs)):
         task, agent = os.path.basename(path).removesuffix(".jsonl").split("-")[:2]
-        lines = read_lines(path)
+        lines = grid.read_lines(path)
         epoch, compile_s = grid.sweep_seconds(lines)
         rows.append((envs_mjx.names().index(task), list(AGENTS).index(agent), [
             task, agent, str(len(lines[0]["eval_success_seeds"])), ENGINES[lines[0]["engine"]], f"{epoch:.2f}",
