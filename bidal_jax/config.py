@@ -1,4 +1,4 @@
-"""Configuration: frozen dataclasses, one per concern, with agent presets by name.
+"""Configuration: frozen dataclasses, one per concern; `resolve` lays a task's preset and the options given over them.
 
 Every field carries its documentation in `metadata["help"]`, which is also what the
 command line shows for it (`python -m experiments.run --help`), and the rule of its valid
@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Callable
 
-from bidal_jax.agents import AGENTS, Agent, get
+from bidal_jax.agents import AGENTS, Agent, get  # noqa: F401 - AGENTS re-exported for the command lines
 from bidal_jax.networks import CONVS, parse_strides
 
 
@@ -254,72 +254,6 @@ def fields_help(cls: type) -> dict[str, str]:
     return {f.name: f.metadata.get("help", "") for f in dataclasses.fields(cls)}
 
 
-def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cycle: int
-               ) -> dict[str, dict[str, Any]]:
-    """A NICOL task's preset, sized for one GPU: `epochs` epochs (the task's learning-curve budget,
-    `experiments.paper.protocol.EPOCHS`) of `cycles_per_epoch` cycles of `num_envs` envs and
-    `updates_per_cycle` gradient updates of batch 2,048, a buffer of the most whole rollouts of `num_envs` episodes
-    that fit in 16,384 episodes, 128 evaluation episodes; the vision branch's convs as matmuls in bfloat16, banded
-    with the last two layers as whole-frame Toeplitz matmuls (`NetworkConfig.conv_impl` toeplitz, `vision_dtype`),
-    the fastest image update on a GPU, with which nicol_slide and planar_reach learn as in float32 (docs/results.md,
-    "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and warp-lang imports
-    (`RunConfig.physics` auto), whose epochs are shorter than MJX-JAX's there (docs/results.md, "MJX-JAX against
-    MuJoCo Warp"); a checkpoint every 10 epochs instead of 5, since one holds the replay buffer (7 GB of frames for 5
-    seeds) and its save costs about two nicol_slide epochs (docs/results.md, "What a checkpoint costs"). The
-    CPU-sized tasks keep the defaults."""
-    train = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
-             "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
-    return {"run": {"epochs": epochs, "physics": "auto", "checkpoint_every": 10}, "train": train,
-            "network": {"conv_impl": "toeplitz", "vision_dtype": "bfloat16"}}
-
-
-LIFT_HELD_STARTS = 0.5  # HER's pick-and-place (arXiv 1707.01495, Sec. 4): half of the training episodes held
-
-
-def merged(preset: dict[str, dict[str, Any]], more: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
-    """`preset` with the groups of `more` laid over it, field by field."""
-    return {group: {**preset.get(group, {}), **more.get(group, {})} for group in {*preset, *more}}
-
-
-# Per-env overrides of the defaults above (then the command line overrides these).
-# Keys: "run", "train", "network"; values: field -> value.
-ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    "planar_reach": {"run": {"epochs": 40}},
-    # the main command's task: one cycle of 160 envs per epoch (the default's 16 × 10 episodes and 400 updates), whose
-    # epoch steps the physics 100 times in a row instead of 550 (evaluation: 160 episodes in the cycles' scan), and
-    # learns as fast (docs/results.md, "Learning parity of the speed levers")
-    "ur5_reach": {"run": {"epochs": 15}, "train": {"num_envs": 160, "cycles_per_epoch": 1, "updates_per_cycle": 400,
-                                                   "buffer_episodes": 4000, "eval_envs": 160}},
-    # the NICOL tasks are sized for one GPU: many parallel envs, big batches and many gradient updates, which cost
-    # little beside the physics there; the same for every agent of a task (equal budgets). nicol_slide: one cycle
-    # of 2,560 envs and 1,600 updates per epoch (128,000 env steps, one update per 80), since one wide cycle costs
-    # fewer sequential physics steps than 512 envs × 5 cycles (the same env steps and updates): 50 in a row an epoch
-    # instead of 250; 5 seeds of multimodal_bidal reach 0.9 in 9 epochs, from a cold start in about 150 s
-    # (docs/results.md, "Cold to 0.9 on nicol_slide")
-    "nicol_slide": gpu_preset(30, 2560, 1, 1600),
-    # nicol_lift and its reduced variant (the transfer target): 6,400 updates per epoch (one per 32 env steps), since
-    # with 1,600 proprio_baseline (5 seeds) reached what sliding alone can score (0.125) only by epoch 53 instead of
-    # 21; twice as many again gain nothing and cost time (docs/results.md, "Lifting"); nor do a quarter as many of
-    # batch 8,192, the same samples: their epochs are shorter, but they learn less per epoch (docs/results.md,
-    # "Learning parity of the speed levers")
-    # they train under HER's pick-and-place protocol: half of the training episodes start with the cube held
-    **{name: merged(gpu_preset(25, 2048, 2, 3200), {"train": {"exploration_starts": LIFT_HELD_STARTS}})
-       for name in ("nicol_lift", "nicol_lift_reduced")},
-}
-# the pixel agents' ladder's variants of nicol_slide (envs_mjx.nicol.NicolSlideKept): its task, so its preset
-ENV_PRESETS.update(dict.fromkeys(("nicol_slide_ee", "nicol_slide_ee_obj"), ENV_PRESETS["nicol_slide"]))
-# Per-agent overrides of the env presets, for agents that learn from images.
-IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-    "planar_reach": {"run": {"epochs": 20}},
-}
-
-
-def env_preset(env: str, agent: str) -> dict[str, dict[str, Any]]:
-    """The overrides for `env` (and for an image `agent` on it): {"run"|"train"|"network": {...}}."""
-    image = agent in AGENTS and AGENTS[agent].uses_image
-    return merged(ENV_PRESETS.get(env, {}), IMAGE_AGENT_PRESETS.get(env, {}) if image else {})
-
-
 CONFIG_CLASSES: dict[str, type] = {"run": RunConfig, "train": TrainConfig, "network": NetworkConfig}
 
 
@@ -373,11 +307,18 @@ def recorded(group: str, fields: Any) -> Any:
     return fields
 
 
-def resolve(given: dict[str, Any]) -> Config:
-    """The config of a new run: defaults, then the env's (and image agent's) preset, then
-    `given` (field name -> value, e.g. from the command line; unknown names are ignored)."""
+def resolve(given: dict[str, Any], preset: Callable[[str, str], dict[str, dict[str, Any]]]) -> Config:
+    """The config of a new run: defaults, then `preset(env, agent)` ({"run"|"train"|"network": {field: value}}: the
+    run's task's overrides for its agent, which the command lines read from the env, `experiments.cli.task_preset`),
+    then `given` (field name -> value, e.g. from the command line; unknown names are ignored). ConfigError for a
+    preset that names a group or field these configs lack."""
     run = RunConfig(**{f.name: given[f.name] for f in dataclasses.fields(RunConfig) if f.name in given})
-    preset = env_preset(run.env, run.agent)
+    preset = preset(run.env, run.agent)
+    unknown = [f"{name}.{field}" for name, values in preset.items() for field in values
+               if name not in CONFIG_CLASSES or field not in {f.name for f in dataclasses.fields(CONFIG_CLASSES[name])}]
+    if unknown:
+        raise ConfigError(f"the task's preset sets {', '.join(unknown)}, not a config field; fields by group: "
+                          "python -m experiments.run --help")
     groups = {}
     for name, group in CONFIG_CLASSES.items():
         fields = {f.name: given[f.name] for f in dataclasses.fields(group) if f.name in given}

@@ -78,7 +78,8 @@ if importlib.metadata.version("jaxlib") == _FLAGS_JAXLIB:
         if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
             os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
 
-# name -> "module:Class", imported lazily so that building one env never loads the others
+# name -> "module:Class", imported lazily so that building one env never loads the others. A new task is its
+# module (its class, model and `task`: presets, budget, contract) and one line here (docs/usage.md)
 _REGISTRY: dict[str, str] = {
     "planar_reach": "envs_mjx.planar_reach:PlanarReach",
     "ur5_reach": "envs_mjx.ur5_reach:UR5Reach",
@@ -100,12 +101,23 @@ def names() -> tuple[str, ...]:
     return tuple(_REGISTRY)
 
 
-def make(name: str, **overrides: Any) -> Env:
-    """Build the environment `name`; keyword overrides go to its constructor."""
+def _registered(name: str) -> Any:
+    """The class or factory registered as `name`, imported, not called; ValueError for an unknown name."""
     if name not in _REGISTRY:
         raise ValueError(f"unknown env {name!r}; valid envs: {', '.join(names())}")
     module_name, class_name = _REGISTRY[name].split(":")
-    return getattr(importlib.import_module(module_name), class_name)(**overrides)
+    return getattr(importlib.import_module(module_name), class_name)
 
 
-__all__ = ["Env", "ObservationSpec", "State", "make", "names", "register"]
+def make(name: str, **overrides: Any) -> Env:
+    """Build the environment `name`; keyword overrides go to its constructor."""
+    return _registered(name)(**overrides)
+
+
+def task(name: str) -> Any:
+    """What the task `name` declares beside its dynamics (its class's `task`, an `envs_mjx.task.Task`: presets,
+    learning-curve budget, contract), without building it; a registered factory without one declares nothing."""
+    return getattr(_registered(name), "task", Env.task)
+
+
+__all__ = ["Env", "ObservationSpec", "State", "make", "names", "register", "task"]

@@ -28,6 +28,7 @@ from flax import struct
 from mujoco import mjx
 
 from envs_mjx.camera import Camera
+from envs_mjx.task import Task
 
 # the top-level assets/ folder, installed as the package `envs_mjx.assets` (pyproject.toml), so
 # that editable installs, wheels and `pip install .` all find the models from any directory
@@ -172,6 +173,8 @@ class Env(abc.ABC):
     """
 
     name: str = "env"
+    # its presets, learning-curve budget and contract's section (envs_mjx/task.py): none by default
+    task: Task = Task()
     # rays per image pixel along each axis: the frame is cast finer and area-averaged down to 42×42
     # (docs/tasks.md, "camera"); the cost of the camera grows with its square
     camera_supersample: int = 2

@@ -16,7 +16,7 @@ The estimator. Success at the episode's last step, s_T, is estimated as
     floor = mean over N resets of s_0 + mean over M rollouts of (s_T − s_0),
 
 s_0 the success of the start itself (the goal within ε of where the task's object starts): a control variate.
-Resets cost a forward pass; rollouts cost T steps of physics (NICOL's about 0.1 s each on a CPU). Where doing
+Resets cost a forward pass; rollouts cost T steps of physics (far more on the NICOL tasks). Where doing
 nothing leaves the object where it started, s_T − s_0 is almost always 0 and M rollouts pin down what a few
 hundred thousand resets cannot afford to simulate. Both terms are unbiased and independent, so the estimate is,
 and its variance is p₀(1 − p₀)/N + Var(s_T − s_0)/M (95 % half-width: 1.96 standard errors; Var(s_T − s_0) taken

@@ -65,6 +65,8 @@ from __future__ import annotations
 
 import abc
 import copy
+import dataclasses
+from typing import Any
 
 import chex
 import jax
@@ -73,6 +75,7 @@ import mujoco
 import numpy as np
 
 from envs_mjx.base import Env, ObservationSpec, load_model
+from envs_mjx.task import Preset, Task
 
 PROPRIO_SEGMENTS = (
     ("ee_pos", 3),
@@ -107,6 +110,9 @@ SLIDE_GOAL_RANGE = 0.15  # ± m beyond the start region
 LIFT_GOAL_RANGE = 0.1  # ± m around the cube's start
 LIFT_HEIGHT = (0.05, 0.25)  # m of an air goal above the table top
 AIR_GOAL_PROBABILITY = 0.5  # HER's pick-and-place: half the goals in the air, half on the table
+# HER's pick-and-place (arXiv 1707.01495, Sec. 4): half of the training episodes start with the cube held
+# (`TrainConfig.exploration_starts` of nicol_lift's preset)
+HELD_STARTS = 0.5
 GRASP_CLOSE_TIME = 1.0  # s for fingers and thumb (at most 2 rad/s) to close on the cube, without gravity
 GRASP_SETTLE_TIME = 0.4  # s for the held cube to settle under gravity
 
@@ -377,10 +383,36 @@ class NicolEnv(Env):
         return data.xpos[self._cube]
 
 
+def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cycle: int, **train: Any) -> Preset:
+    """A NICOL task's preset, sized for one GPU and the same for every agent of the task (equal budgets): `epochs`
+    epochs (the task's learning-curve budget) of `cycles_per_epoch` cycles of `num_envs` envs and
+    `updates_per_cycle` gradient updates of batch 2,048, a buffer of the most whole rollouts of `num_envs` episodes
+    that fit in 16,384 episodes, 128 evaluation episodes, and the learner fields `train`; many parallel envs, big
+    batches and many gradient updates cost little beside the physics there. The vision branch's convs as matmuls in
+    bfloat16, banded with the last two layers as whole-frame Toeplitz matmuls (`NetworkConfig.conv_impl` toeplitz,
+    `vision_dtype`), the fastest image update on a GPU, with which nicol_slide and planar_reach learn as in float32
+    (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and
+    warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than MJX-JAX's there (docs/results.md,
+    "MJX-JAX against MuJoCo Warp"); a checkpoint every 10 epochs instead of 5, since one holds the replay buffer
+    (GBs of frames) and its save costs the time of epochs (docs/results.md, "What a checkpoint costs")."""
+    sizes = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
+             "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
+    return {"run": {"epochs": epochs, "physics": "auto", "checkpoint_every": 10}, "train": {**sizes, **train},
+            "network": {"conv_impl": "toeplitz", "vision_dtype": "bfloat16"}}
+
+
 class NicolSlide(NicolEnv):
     """Slide the cube along the table to a goal on the table."""
 
     name = "nicol_slide"
+    # one cycle of 2,560 envs and 1,600 updates per epoch (128,000 env steps, one update per 80), since one wide
+    # cycle costs fewer sequential physics steps than 512 envs × 5 cycles (the same env steps and updates): 50 in a
+    # row an epoch instead of 250; 5 seeds of multimodal_bidal reach 0.9 in 9 epochs (docs/results.md, "Cold to 0.9
+    # on nicol_slide"). The learning curves' budget: the multimodal agents at ≥ 0.9 from epoch 10-13 in pilot runs,
+    # the visual agents at the do-nothing level through 25 epochs, plus about 15 (docs/deviations.md,
+    # "Learning-curve budgets")
+    task = Task(contract="docs/tasks.md#nicol_slide-and-nicol_lift", presets=gpu_preset(30, 2560, 1, 1600),
+                paper_epochs=30)
 
     def _sample_goal(self, key, cube_pos):
         reach = CUBE_START_RANGE + SLIDE_GOAL_RANGE
@@ -399,6 +431,15 @@ class NicolLift(NicolEnv):
 
     name = "nicol_lift"
     has_exploration_start = True
+    # 6,400 updates per epoch (one per 32 env steps), since with 1,600 proprio_baseline (5 seeds) reached what sliding
+    # alone can score (0.125) only by epoch 53 instead of 21; twice as many again gain nothing and cost time
+    # (docs/results.md, "Lifting"); nor do a quarter as many of batch 8,192, the same samples: their epochs are
+    # shorter, but they learn less per epoch (docs/results.md, "Learning parity of the speed levers"). Every agent
+    # trains under HER's pick-and-place protocol: half of the training episodes start with the cube held
+    # (`HELD_STARTS`). The learning curves' budget: multimodal_bidal (λ 0.1) at ≥ 0.9 air-goal success from epoch 11
+    # in pilot runs, proprio_baseline from 6, plus about 15 (docs/deviations.md, "Learning-curve budgets")
+    task = Task(contract="docs/tasks.md#nicol_slide-and-nicol_lift",
+                presets=gpu_preset(25, 2048, 2, 3200, exploration_starts=HELD_STARTS), paper_epochs=25)
 
     def __init__(self, render: bool = True, air_goal_probability: float = AIR_GOAL_PROBABILITY):
         if not 0.0 <= air_goal_probability <= 1.0:
@@ -442,6 +483,8 @@ class NicolLiftReduced(NicolLift):
     from the spec's segment names, so the dropped segments are never observed."""
 
     name = "nicol_lift_reduced"
+    # nicol_lift's presets; the transfer's target (experiments.paper.transfer_learning), not a learning-curve task
+    task = dataclasses.replace(NicolLift.task, paper_epochs=None)
 
     def __init__(self, render: bool = True, air_goal_probability: float = AIR_GOAL_PROBABILITY):
         super().__init__(render=render, air_goal_probability=air_goal_probability)
@@ -454,6 +497,7 @@ class NicolSlideKept(NicolSlide):
     the spec's segment names, so the other segments are never observed."""
 
     keep: tuple[str, ...] = ()
+    task = dataclasses.replace(NicolSlide.task, paper_epochs=None)  # a variant, not a task of the learning curves
 
     def __init__(self, render: bool = True):
         super().__init__(render=render)

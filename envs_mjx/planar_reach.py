@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import mujoco
 
 from envs_mjx.base import JointReachEnv, load_model
+from envs_mjx.task import Task
 
 LINK_LENGTH = 0.12
 MAX_DELTA = 0.2  # rad per step
@@ -31,6 +32,11 @@ class PlanarReach(JointReachEnv):
     """The planar reaching task; see the module docstring for the contract."""
 
     name = "planar_reach"
+    # sized for a run on a CPU: 40 epochs of the default sizes, 20 for the agents that learn from images; the
+    # learning curves' budget is where visual_bidal comes within 0.05 of its plateau (0.93) in pilot runs, epoch 75,
+    # plus a margin (docs/deviations.md, "Learning-curve budgets"; results/pilots)
+    task = Task(contract="docs/tasks.md#planar_reach", presets={"run": {"epochs": 40}},
+                image_presets={"run": {"epochs": 20}}, paper_epochs=100)
 
     def __init__(self, render: bool = True):
         mj_model = load_model("planar_reach.xml")

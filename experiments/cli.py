@@ -1,5 +1,7 @@
 """What the commands share: the config's options, starting a run, and the exit codes.
 
+- `task_preset(env, agent)`: a task's preset for an agent, read from its env class's `task` (envs_mjx/task.py);
+  `resolve(given)`: a new run's config, the defaults with that preset and `given` laid over them.
 - `run_parser()`: `python -m experiments.run`'s options, one per config field (their help is
   the field's documentation), after what the command does, its agents and tasks with their presets
   (`run_description`); the paper experiments pass their extra options through it.
@@ -34,17 +36,8 @@ import textwrap
 from typing import Any, Callable, Sequence
 
 import envs_mjx
-from bidal_jax.config import (
-    AGENTS,
-    CONFIG_CLASSES,
-    Config,
-    ConfigError,
-    RunConfig,
-    env_preset,
-    fields_help,
-    option,
-    resolve,
-)
+from bidal_jax import config as config_lib
+from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, RunConfig, fields_help, option
 from bidal_jax.run import cachefolder, loop, memory, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
@@ -59,7 +52,6 @@ EXIT_MEMORY = 6  # (5: a grid's cell lost, `experiments.cluster.EXIT_LOST`)
 FAILURES = (ConfigError, CheckpointError, Diverged, DiskError, OutOfMemory, Interrupted)
 # anything else: EXIT_BAD_INPUT
 EXIT_CODES = ((Diverged, EXIT_DIVERGED), (DiskError, EXIT_DISK), (OutOfMemory, EXIT_MEMORY))
-CHOICES = {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
 
 
 def failure(err: Exception, resume_hint: str = "run the same command again to continue") -> tuple[int, str]:
@@ -100,16 +92,42 @@ def _bool(text: str) -> bool:
     return text.lower() in ("1", "true", "yes")
 
 
+def choices() -> dict[str, tuple[str, ...]]:
+    """The names that --env and --agent take: the registered tasks and agents."""
+    return {"env": envs_mjx.names(), "agent": tuple(AGENTS)}
+
+
+def task_preset(env: str, agent: str) -> dict[str, dict[str, Any]]:
+    """The preset of task `env` for `agent` ({"run"|"train"|"network": {field: value}}): the env's `task.presets`,
+    and its `task.image_presets` over them for an agent that learns from images (envs_mjx/task.py); none for a name
+    that is not registered (the checks refuse it, `validate.check`)."""
+    if env not in envs_mjx.names():
+        return {}
+    task = envs_mjx.task(env)
+    preset = {group: dict(values) for group, values in task.presets.items()}
+    if agent in AGENTS and AGENTS[agent].uses_image:
+        for group, values in task.image_presets.items():
+            preset[group] = {**preset.get(group, {}), **values}
+    return preset
+
+
+def resolve(given: dict[str, Any]) -> Config:
+    """The config of a new run (`bidal_jax.config.resolve`): defaults, then its task's preset for its agent
+    (`task_preset`), then `given`."""
+    return config_lib.resolve(given, task_preset)
+
+
 def preset_fields() -> frozenset[str]:
     """The config fields that some task's preset sets, for some agent: their default is the preset's."""
-    return frozenset(field for env in CHOICES["env"] for agent in CHOICES["agent"]
-                     for values in env_preset(env, agent).values() for field in values)
+    names = choices()
+    return frozenset(field for env in names["env"] for agent in names["agent"]
+                     for values in task_preset(env, agent).values() for field in values)
 
 
 def task_line(env: str) -> str:
     """One task's preset in a line: the default agent's epochs and what an epoch holds, and the agents whose
     epochs differ: "planar_reach       20 epochs of 160 episodes, 400 updates (proprio_baseline 40)"."""
-    configs = {agent: resolve({"env": env, "agent": agent}) for agent in CHOICES["agent"]}
+    configs = {agent: resolve({"env": env, "agent": agent}) for agent in choices()["agent"]}
     run, train = configs[RunConfig.agent].run, configs[RunConfig.agent].train
     others = ", ".join(f"{agent} {c.run.epochs}" for agent, c in configs.items() if c.run.epochs != run.epochs)
     return (f"  {env:<19}{run.epochs} epochs of {train.cycles_per_epoch * train.num_envs:,} episodes, "
@@ -119,7 +137,8 @@ def task_line(env: str) -> str:
 def run_description() -> str:
     """What `python -m experiments.run` does, its agents and tasks, and the presets, before its options: what a
     newcomer reads first."""
-    agents = ", ".join(f"{a} (the default)" if a == RunConfig.agent else a for a in CHOICES["agent"])
+    names = choices()
+    agents = ", ".join(f"{a} (the default)" if a == RunConfig.agent else a for a in names["agent"])
     return "\n".join([
         *textwrap.wrap("Train an agent on a task: DDPG + HER, and for the *_bidal agents BidAL's forward and "
                        "inverse models and their intrinsic reward. A run writes config.json, metrics.csv, "
@@ -127,9 +146,9 @@ def run_description() -> str:
         "",
         *textwrap.wrap(f"agents (--agent): {agents}", 78, subsequent_indent="  "),
         f"tasks (--env), each with a preset of epochs and sizes ({RunConfig.agent}'s):",
-        *(task_line(env) for env in CHOICES["env"]),
+        *(task_line(env) for env in names["env"]),
         *textwrap.wrap("A task's preset overrides the defaults below, and the options given override the "
-                       "preset (bidal_jax/config.py, ENV_PRESETS); --print-config prints the resolved config "
+                       "preset (its env class's `task`, envs_mjx/); --print-config prints the resolved config "
                        "without training.", 78),
     ])
 
@@ -141,14 +160,13 @@ def run_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m experiments.run", usage="%(prog)s [options]",
                                      description=run_description(),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    preset = preset_fields()
+    preset, names = preset_fields(), choices()
     for group_name, cls in CONFIG_CLASSES.items():
         group = parser.add_argument_group(f"{group_name} options")
         helps = fields_help(cls)
         for f in dataclasses.fields(cls):
             kind = _bool if type(f.default) is bool else type(f.default)
-            choices = CHOICES.get(f.name)
-            listed = f"; one of: {', '.join(choices)}" if choices else ""
+            listed = f"; one of: {', '.join(names[f.name])}" if f.name in names else ""
             default = f"the task's preset, else {f.default!r}" if f.name in preset else repr(f.default)
             # None marks "not given", so that presets apply; the help shows the config default once
             group.add_argument(option(f.name), type=kind, default=None, metavar=f.name.upper(),
@@ -194,8 +212,8 @@ def start_run(
     memory.share_gpu()
     cachefolder.enable()  # before anything compiles: JAX reads the setting at its first compile
     loop.short_source_locations()  # before anything is lowered
-    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,
-                           overwrite=overwrite, fresh_buffer=fresh_buffer, env=env) as prepared:
+    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, preset=task_preset,
+                           resume=resume, overwrite=overwrite, fresh_buffer=fresh_buffer, env=env) as prepared:
         config, env = prepared.config, prepared.env
         if initialize is None and config.run.init_from:  # another run's parameters (ignored on resume)
             initialize = transfer.make_initializer(config.run, env.observation_spec.proprio_segments, envs_mjx.make)

@@ -466,8 +466,8 @@ def gpu_sharing(root: str = RESULTS) -> list[tuple[tuple[str, ...], int]]:
 
 
 def gpus_of(run: dict) -> int:
-    """The GPUs of the machine a run's processes ran on: the most of config.json's "hardware" entries ("2 × NVIDIA
-    H100 ..."); 1 where it records none."""
+    """The GPUs of the machine a run's processes ran on: the most of config.json's "hardware" entries ("2 × <GPU
+    name> ..."); 1 where it records none."""
     counts = [int(m.group(1)) for h in run["config"].get("hardware") or [] if (m := re.match(r"(\d+) ×", h))]
     return max(counts, default=1)
 

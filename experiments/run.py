@@ -42,7 +42,6 @@ from __future__ import annotations
 import json
 import sys
 
-from bidal_jax.config import resolve
 from bidal_jax.run import multihost, preflight
 from experiments import cli
 
@@ -53,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         multihost.initialize()  # several processes, when the environment launched them (docs/usage.md)
         if args.print_config:
-            config = resolve(given)
+            config = cli.resolve(given)
             if args.resume and args.run_dir:
                 config = preflight.resumed_config(args.run_dir, given)
             print(json.dumps(config.to_dict(), indent=2))

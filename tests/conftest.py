@@ -11,9 +11,8 @@ import jax
 import pytest
 
 import envs_mjx
-from bidal_jax.config import resolve
 from bidal_jax.run import loop, preflight, rundir
-from experiments import run
+from experiments import cli, run
 from tests.helpers import FINISHED
 
 # per user, not per checkout, so that a fresh clone (CI's) finds what earlier runs on the machine compiled (about a
@@ -49,7 +48,7 @@ def write_fake_run(run_dir: str, env: str, rows, checkpoint_epoch: int | None, a
     with open(os.path.join(run_dir, "config.json"), "w") as f:
         config = {"run": {"env": env, "agent": agent, "seeds": seeds}, "train": {}, "network": {}}
         if given is not None:
-            config = resolve({**given, "env": env, "agent": agent, "seeds": seeds, "run_dir": run_dir}).to_dict()
+            config = cli.resolve({**given, "env": env, "agent": agent, "seeds": seeds, "run_dir": run_dir}).to_dict()
         json.dump(config | ({"physics": physics} if physics is not None else {}), f)
     with open(os.path.join(run_dir, "metrics.csv"), "w", newline="") as f:
         writer = csv.writer(f)
@@ -80,7 +79,7 @@ def no_nicol(monkeypatch):
         calls.append(("prepare", given["run_dir"], resume, overwrite))
         if overwrite:
             delete_run_dir(given["run_dir"])
-        yield preflight.Prepared(resolve(given), env or envs_mjx.make(given["env"]), None)
+        yield preflight.Prepared(cli.resolve(given), env or envs_mjx.make(given["env"]), None)
 
     def train(env, config, *, resume, initialize, **kwargs):
         # a run without a checkpoint was emptied first (but for its lock, which a real prepare took)

@@ -88,8 +88,8 @@ def enable(log: Callable[[str], None] = _log) -> None:
     before anything compiles.
 
     Every program is kept: besides the run's programs, building the env (the camera's static image, MJX's data)
-    and the seeds' keys run some sixty operations one by one, each its own small compile, together about 1.5 s of
-    every start on a 2-core CPU; read back, they take a fraction of that."""
+    and the seeds' keys run some sixty operations one by one, each its own small compile, together a noticeable part
+    of every start on a CPU; read back, they take a fraction of that."""
     folder = resolve()
     reason = problem(folder)
     if reason is not None:

@@ -1,6 +1,7 @@
 """The training loop that every command line and experiment calls.
 
-    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
+    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make,
+                           preset=experiments.cli.task_preset) as prepared:
         row = loop.train(prepared.env, prepared.config, prepared.programs)
 
 `train` runs the jitted epoch of the programs it is given (`train.make_train`, laid out by `devices`, built once by

@@ -1,6 +1,7 @@
 """Preparing a run: every check before anything is compiled or written, and the run directory's lock.
 
-    with prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
+    with prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make,
+                 preset=experiments.cli.task_preset) as prepared:
         row = loop.train(prepared.env, prepared.config, prepared.programs)
 
 `prepare` is one pass, in this order: the run directory not in use (`rundir.check_not_in_use`); the config, resolved
@@ -118,14 +119,16 @@ def prepare(
     *,
     env_names: Iterable[str],
     make_env: Callable[..., Any],
+    preset: Callable[[str, str], dict[str, dict[str, Any]]],
     resume: bool = False,
     overwrite: bool = False,
     fresh_buffer: bool = False,
     env: Any = None,
 ) -> Iterator[Prepared]:
     """The run that `given` (field -> value, e.g. a command line) asks for, after every check, with the
-    run directory locked (and emptied with `overwrite`) until the block ends; compiles nothing. `env`:
-    the run's env if built already, else `make_env(name, render=...)` builds it. Raises ConfigError or
+    run directory locked (and emptied with `overwrite`) until the block ends; compiles nothing. `preset(env, agent)`:
+    a new run's task's preset for its agent (`resolve`). `env`: the run's env if built already, else
+    `make_env(name, render=...)` builds it. Raises ConfigError or
     CheckpointError (a resumed run's checkpoint without its replay buffer, unless `fresh_buffer` starts
     an empty one).
 
@@ -140,7 +143,7 @@ def prepare(
     if given.get("run_dir"):  # a directory in use is refused before any other check names it
         rundir.main_decides(lambda: rundir.check_not_in_use(given["run_dir"]), f"run directory {given['run_dir']}")
     # the config: the values given, or the checkpoint's that a resumed run continues; checked once
-    config = _resumed(given, fresh_buffer) if resume else resolve(given)
+    config = _resumed(given, fresh_buffer) if resume else resolve(given, preset)
     validate.check(config, env_names=tuple(env_names))
     if not resume:  # a new run: into a directory of its own (by default one named after it and the time)
         if not config.run.run_dir:

@@ -1,7 +1,7 @@
 """The training program of an env's preset, laid out as a run lays it out: the benchmarks' shared start.
 
 `seeded_program(env, agent, seeds, ...)` builds the env (`make_env`: on MJX's JAX or MuJoCo Warp
-physics, by default the preset's choice), the preset config (`bidal_jax.config.resolve`, with any `TrainConfig`
+physics, by default the preset's choice), the preset config (`experiments.cli.resolve`, with any `TrainConfig`
 overrides), the device layout (`bidal_jax.run.devices.device_layout`) and the seeds' one compiled program
 (`make_seeded`), as `python -m experiments.run` would. `parse_variant` reads the overrides of a benchmark's
 `--variant` (`a=1,net.hidden_size=256,opt.iterations=5`); `timed` times a blocking call cold and warm.
@@ -18,10 +18,11 @@ from typing import Any, Callable, NamedTuple
 import jax
 
 import envs_mjx
-from bidal_jax.config import Config, NetworkConfig, TrainConfig, resolve
+from bidal_jax.config import Config, NetworkConfig, TrainConfig
 from bidal_jax.run import validate
 from bidal_jax.run.devices import device_layout, make_seeded, physics_engine, physics_worlds
 from bidal_jax.train import make_train
+from experiments import cli
 
 
 class SeededProgram(NamedTuple):
@@ -48,7 +49,7 @@ def make_env(name: str, backend: str, worlds: int, render: bool, options: dict |
 def program_config(name: str, agent: str, train: dict | None = None, network: dict | None = None) -> Config:
     """The preset config of `agent` on the env `name` with the `TrainConfig` overrides `train` and `NetworkConfig`
     overrides `network`, checked as a run checks its config (`validate.check`: ConfigError, one line)."""
-    preset = resolve({"env": name, "agent": agent})
+    preset = cli.resolve({"env": name, "agent": agent})
     config = dataclasses.replace(preset, train=dataclasses.replace(preset.train, **(train or {})),
                                  network=dataclasses.replace(preset.network, **(network or {})))
     validate.check(config, env_names=envs_mjx.names())

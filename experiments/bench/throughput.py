@@ -24,10 +24,11 @@ import numpy as np
 
 import envs_mjx
 from bidal_jax import acting
-from bidal_jax.config import ConfigError, TrainConfig, resolve
+from bidal_jax.config import ConfigError, TrainConfig
 from bidal_jax.run import validate
 from bidal_jax.run.devices import make_seeded
 from bidal_jax.train import make_train
+from experiments import cli
 from experiments.bench.programs import seeded_program, timed
 
 
@@ -56,7 +57,7 @@ def camera_frames_per_second(name: str, num_envs: int, repeats: int) -> float:
 
 def training_steps_per_second(name: str, agent: str, num_envs: int, repeats: int) -> float:
     """Env steps per second of whole training epochs (rollouts, updates, evaluation)."""
-    preset = resolve({"env": name, "agent": agent})
+    preset = cli.resolve({"env": name, "agent": agent})
     config = dataclasses.replace(
         preset.train,
         num_envs=num_envs,

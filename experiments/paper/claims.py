@@ -186,7 +186,7 @@ def holm_checks(diffs: Sequence[stats.Difference], positive: bool, ceilings: Seq
 # ----- (a) learning curves ---------------------------------------------------------------------------
 
 
-def load_grid(curves_dir: str, tasks: Sequence[str] = protocol.TASKS) -> dict[tuple[str, str], dict | None]:
+def load_grid(curves_dir: str, tasks: Sequence[str] = protocol.paper_tasks()) -> dict[tuple[str, str], dict | None]:
     """(task, agent) -> the run in CURVES/<task>/<agent> (`report.load_run`), None where it has no epochs."""
     return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in tasks for a in AGENTS}
 
@@ -254,7 +254,7 @@ def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: 
 def grid_gaps(runs: dict[tuple[str, str], dict | None], agents: Sequence[str]) -> list[str]:
     """Why the cells of `agents` cannot measure a claim (`gap`): the runs of a claim about those agents alone, so
     that a missing cell of another agent (the λ = 0 ablation's) leaves it measured."""
-    found = [gap(f"{t}/{a}", run, max(protocol.EPOCHS.get(t, 0), protocol.budget(run) if run else 0))
+    found = [gap(f"{t}/{a}", run, max(protocol.paper_epochs().get(t, 0), protocol.budget(run) if run else 0))
              for (t, a), run in runs.items() if a in agents]
     return [g for g in found if g]
 
@@ -278,7 +278,7 @@ def learned_rule(last_n: int, overall: Sequence[str]) -> str:
 def learns_claims(measured: Grid, runs: dict[tuple[str, str], dict | None], last_n: int,
                   stale: set[str]) -> list[Claim]:
     """Claim (a), first part: the BidAL agents learn every task, the visual baseline none (`learned_rule`)."""
-    tasks, rows = set(protocol.TASKS), []
+    tasks, rows = set(protocol.paper_tasks()), []
     for name, agents, learns in ((f"(a) the BidAL agents ({', '.join(BIDAL)}) learn every task", BIDAL, True),
                                  (f"(a) the visual baseline ({VISUAL}) learns no task", (VISUAL,), False)):
         cells = [key for key in measured.figures if key[1] in agents]
@@ -396,7 +396,7 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], floors: report
     figures = measured.figures
     names = ((f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
              (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"))
-    tasks = [t for t in protocol.TASKS if all((t, a) in figures for a in (OURS, *PAPER_BASELINES))]
+    tasks = [t for t in protocol.paper_tasks() if all((t, a) in figures for a in (OURS, *PAPER_BASELINES))]
     if not tasks:
         why = f"{NOT_MEASURED}: no {OURS} run beside the paper's baselines' on the same tasks"
         return [Claim(c, "—", p, why, "") for c, p in names]
@@ -427,7 +427,7 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], floors: report
 def added_claim(measured: Grid, other: str, gaps: list[str], stale: set[str], floors: report.Floors) -> Claim:
     """An added arm's row (not in the paper): OURS against `other` (multimodal_baseline; the λ = 0 ablation), the
     mean over the tasks both ran, `PRIMARY` deciding."""
-    tasks = [t for t in protocol.TASKS if (t, OURS) in measured.figures and (t, other) in measured.figures]
+    tasks = [t for t in protocol.paper_tasks() if (t, OURS) in measured.figures and (t, other) in measured.figures]
     what = "the λ = 0 ablation: where a gain comes from" if other == ABLATION else "the multimodal baseline"
     name = f"(a, added arm: {what}) {OURS} learns faster than {other}"
     paper = "not tested (the paper has no λ = 0 agent)" if other == ABLATION else \
@@ -818,7 +818,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        stale = set(cli.parse_names(args.stale, "--stale", "task", (*protocol.TASKS, protocol.TARGET_ENV))) \
+        stale = set(cli.parse_names(args.stale, "--stale", "task", (*protocol.paper_tasks(), protocol.TARGET_ENV))) \
             if args.stale else set()
         if args.last_n < 1:
             raise ValueError(f"--last-n {args.last_n}: must be a positive integer")

@@ -5,23 +5,24 @@ every agent of a task.
         [--out results/curves] [--dry-run | --report] [--last-n 10]
         [any learner or network option of experiments.run]
 
-The grid is the tasks planar_reach, ur5_reach, nicol_slide and nicol_lift × the agents of
-`bidal_jax.agents.AGENTS` (the paper's five and multimodal_bidal_no_ri, multimodal BidAL without its intrinsic
-reward: whether a gain comes from the representation losses or from the curiosity reward); `--tasks` and
-`--agents` (comma lists) take a part of it. Each cell is 5 seeds of one task and agent (`--seeds N` sets every
-cell's) in OUT/<task>/<agent>, trained in blocks of seeds vmapped as one program that each end within 20 minutes
-on one GPU by the plan's estimate (`protocol.BLOCK_SECONDS`, `grid.blocks`): a cell that fits is one run in its
-folder, a longer one is runs in OUT/<task>/<agent>/seeds-A-B with their own first seed, which the table, the
-figure and the claims read as one run of all its seeds (`report.load_run`).
+The grid is the tasks that declare a learning-curve budget (`protocol.paper_tasks`: planar_reach, ur5_reach,
+nicol_slide and nicol_lift) × the agents of `bidal_jax.agents.AGENTS` (the paper's five and multimodal_bidal_no_ri,
+multimodal BidAL without its intrinsic reward: whether a gain comes from the representation losses or from the
+curiosity reward); `--tasks` and `--agents` (comma lists) take a part of it, and `--tasks` any other registered task
+where `--epochs` gives its budget. Each cell is 5 seeds of one task and agent (`--seeds N` sets every cell's) in
+OUT/<task>/<agent>, trained in blocks of seeds vmapped as one program that each end within `protocol.BLOCK_SECONDS`
+on one GPU by the plan's estimate (`grid.blocks`): a cell that fits is one run in its folder, a longer one is runs
+in OUT/<task>/<agent>/seeds-A-B with their own first seed, which the table, the figure and the claims read as one
+run of all its seeds (`report.load_run`).
 
-Budget: one epoch count per task for every agent (`protocol.EPOCHS`, overridden for all tasks by `--epochs`):
-planar_reach 100, ur5_reach 150, nicol_slide 30, nicol_lift 25, where the slowest agent that learns levels off in
-pilot runs, plus a margin (docs/deviations.md, "Learning-curve budgets"). The NICOL tasks' are their env presets'
-(bidal_jax/config.py); the reaching tasks' presets (planar_reach 40, 20 for its image agents; ur5_reach 15) are
-sized for a run on a CPU, so the grid runs them until the visual agents' curves level off, the same for every agent
-so that every curve of a panel covers the same env steps. The other settings are the env presets' (nicol_slide:
-2,560 envs × 1 cycle, nicol_lift: 2,048 × 2, ...); learner and network options (e.g. `--num-envs 16
---conv-channels 4`) and `--checkpoint-every` pass to every run.
+Budget: one epoch count per task for every agent, the task's own (its env's `task.paper_epochs`,
+`protocol.paper_epochs`; overridden for all tasks by `--epochs`): planar_reach 100, ur5_reach 150, nicol_slide 30,
+nicol_lift 25, where the slowest agent that learns levels off in pilot runs, plus a margin (docs/deviations.md,
+"Learning-curve budgets"). The NICOL tasks' are their env presets' (envs_mjx/nicol.py); the reaching tasks' presets
+(planar_reach 40, 20 for its image agents; ur5_reach 15) are sized for a run on a CPU, so the grid runs them until
+the visual agents' curves level off, the same for every agent so that every curve of a panel covers the same env
+steps. The other settings are the env presets' (nicol_slide: 2,560 envs × 1 cycle, nicol_lift: 2,048 × 2, ...);
+learner and network options (e.g. `--num-envs 16 --conv-channels 4`) and `--checkpoint-every` pass to every run.
 
 nicol_lift trains under HER's pick-and-place protocol, its preset's: half of its training episodes start with the
 cube held, evaluation always from reset (the paper is silent; docs/deviations.md). `--exploration-starts 0` runs
@@ -29,7 +30,7 @@ the plain protocol instead, a labelled variant written to results/curves-plain b
 
 `--dry-run` prints the plan (one line per run: task, agent, seeds, epochs, env steps per seed,
 run dir, new/resume/done/stale) and its estimated time on one GPU running the runs one after another
-(`grid.SECONDS`, measured epochs in results/scaling/epochs), and writes nothing. Otherwise the runs
+(`grid.epoch_time`, measured epochs in results/scaling/epochs), and writes nothing. Otherwise the runs
 train one after another (`experiments/paper/grid.py`), resumable as experiments.paper.transfer_learning: run
 the same command again; a run whose latest checkpoint, or whose metrics.csv (results/ keeps no finished run's
 checkpoints), is at its epochs is skipped, an interrupted one resumes from its latest checkpoint (with an empty
@@ -79,7 +80,7 @@ from bidal_jax.run import multihost
 from experiments import cli, cluster, report
 from experiments.paper import grid, protocol
 from experiments.paper.grid import Arm
-from experiments.paper.protocol import DEFAULT_SEED, DEFAULT_SEEDS, EPOCHS, TASKS  # the budget: epochs per task
+from experiments.paper.protocol import DEFAULT_SEED, DEFAULT_SEEDS
 
 PROG = "python -m experiments.paper.curves"
 LIFT = "nicol_lift"
@@ -87,9 +88,9 @@ LIFT = "nicol_lift"
 
 def build_parser() -> argparse.ArgumentParser:
     parser = grid.experiment_parser(PROG, __doc__, "every run")
-    parser.add_argument(
-        "--tasks", default=",".join(TASKS), help=f"comma list of tasks (default all: {', '.join(TASKS)})"
-    )
+    budgets = protocol.paper_epochs()
+    parser.add_argument("--tasks", default=",".join(budgets), help=f"comma list of tasks (default all that declare a "
+                        f"learning-curve budget: {', '.join(budgets)}; another registered task needs --epochs)")
     parser.add_argument("--agents", default=",".join(AGENTS), help=f"comma list of agents (default all: "
                         f"{', '.join(AGENTS)})")
     parser.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, help="seeds of every cell, in blocks of seeds "
@@ -100,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         help="epochs of every run of every task (default per "
-        "task: " + ", ".join(f"{t} {e}" for t, e in EPOCHS.items()) + ")",
+        "task: " + ", ".join(f"{t} {e}" for t, e in budgets.items()) + ")",
     )
     parser.add_argument("--out", default=None, help="output folder (default results/curves, or results/curves-plain "
                         "with --exploration-starts 0)")
@@ -114,6 +115,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--last-n", type=int, default=10, help="epochs averaged for the final success in table.md")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
+
+
+def chosen_tasks(text: str, epochs: int | None) -> tuple[str, ...]:
+    """The registered tasks of `--tasks`; ConfigError for a name not registered, or for one without a learning-curve
+    budget (`protocol.paper_epochs`) unless `epochs` (`--epochs`) gives every task's."""
+    tasks = cli.parse_names(text, "--tasks", "task", envs_mjx.names())
+    without = [task for task in tasks if task not in protocol.paper_epochs()]
+    if without and not epochs:
+        raise ConfigError(f"--tasks {text}: {', '.join(without)} declares no learning-curve budget (its env's "
+                          "task.paper_epochs); give --epochs N")
+    return tasks
 
 
 def plan_text(blocks: Sequence[Arm], envs: dict[str, Any]) -> str:
@@ -244,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = grid.out_dir(args, "curves", extra)
         cluster.prepare_driver(args)
         multihost.initialize()
-        tasks = cli.parse_names(args.tasks, "--tasks", "task", TASKS)
+        tasks = chosen_tasks(args.tasks, args.epochs)
         agents = cli.parse_names(args.agents, "--agents", "agent", tuple(AGENTS))
         arms = grid.curve_arms(tasks, agents, args.seeds, args.seed, args.epochs, extra, out)
         cells = grid.checked_arms(arms, args.last_n)

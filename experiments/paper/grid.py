@@ -15,7 +15,8 @@ or written), or a run directory in use (one `error: ...` line); 3 diverged; 4 th
 checkpoint was saved). Each run locks its own directory while it trains (`bidal_jax.run.rundir`),
 not the experiment's folder: two commands may share the folder (e.g. `experiments.paper.transfer_learning
 --arms source` and `--arms scratch`), but a run that another process trains is refused (exit 2). Every
-experiment's plan (`estimated_plan`) gives each run's estimated time on one GPU from measured epochs (`SECONDS`).
+experiment's plan (`estimated_plan`) gives each run's estimated time on one GPU from the epochs measured in
+results/scaling/epochs (`epoch_time`).
 """
 
 from __future__ import annotations
@@ -23,25 +24,17 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
+import json
+import math
 import os
 from typing import Any, Callable, Iterable, NamedTuple, Sequence
 
 import envs_mjx
-from bidal_jax.config import (
-    AGENTS,
-    CONFIG_CLASSES,
-    Config,
-    ConfigError,
-    NetworkConfig,
-    TrainConfig,
-    option,
-    recorded,
-    resolve,
-)
+from bidal_jax.config import AGENTS, CONFIG_CLASSES, Config, ConfigError, NetworkConfig, TrainConfig, option, recorded
 from bidal_jax.run import checkpoint, memory, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
-from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS, EPOCHS, TASKS
+from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS, paper_epochs
 from experiments.report import loaded  # the experiments read their runs through it, as `grid.loaded`
 
 # what passes through to every run: the learner and network options and the checkpoint interval
@@ -80,7 +73,7 @@ class Arm:
     @property
     def config(self) -> Config:
         """The run's config: defaults, presets, then its fields."""
-        return resolve(self.given)
+        return cli.resolve(self.given)
 
 
 STALE = "†"  # marks a stale run's cell (`stale`) in the learning curves' tables
@@ -92,11 +85,12 @@ STALE_WHY = ("runs not recorded on today's physics of their task or made with an
 def curve_arms(tasks: Sequence[str], agents: Sequence[str], seeds: int, seed: int, epochs: int | None,
                extra: dict[str, Any], out: str) -> list[Arm]:
     """The learning-curve grid's cells (`experiments.paper.curves`) in OUT/<task>/<agent>, task by task in the
-    grid's order, each with `epochs` or else its task's budget (`protocol.EPOCHS`) for every agent (training splits
-    them into blocks of seeds, `blocks`)."""
+    registry's order, each with `epochs` or else its task's budget (`protocol.paper_epochs`) for every agent (training
+    splits them into blocks of seeds, `blocks`)."""
+    budgets = {} if epochs else paper_epochs()
     return [Arm(f"{task}/{agent}", {"env": task, "agent": agent, "seeds": seeds, "seed": seed, **extra,
-                                    "epochs": epochs or EPOCHS[task], "run_dir": os.path.join(out, task, agent)})
-            for task in TASKS if task in tasks for agent in AGENTS if agent in agents]
+                                    "epochs": epochs or budgets[task], "run_dir": os.path.join(out, task, agent)})
+            for task in envs_mjx.names() if task in tasks for agent in AGENTS if agent in agents]
 
 
 def experiment_parser(prog: str, doc: str, runs: str) -> argparse.ArgumentParser:
@@ -278,50 +272,94 @@ def plan_line(arm: Arm, env, progress: Status) -> str:
     )
 
 
-# estimated (seconds per epoch, compile seconds) of a 5-seed program of the default sizes alone on one GPU, per
-# task and agent kind (`kind`): `python -m experiments.bench.sweep --env TASK --agent AGENT --seeds 5 --epochs 3`,
-# one process each, from an empty compilation cache, in results/scaling/epochs/TASK-AGENT.jsonl: multimodal_bidal
-# for "image" (every agent that sees images where no "image_baseline" is given), multimodal_baseline for
-# "image_baseline" (the baselines encode one frame fewer a sample in an update), proprio_baseline for "proprio". The
-# reaching tasks ran with MJX-JAX physics, the NICOL tasks with MuJoCo Warp, each on one GPU. Per epoch: the
-# mean step of `process_seconds`; compile: the first epoch's `variant_seconds` less one epoch. The first NICOL run on
-# each machine (nicol_slide proprio_baseline, nicol_lift multimodal_baseline) compiled Warp's kernels into an empty
-# kernel cache, about 105 s that a grid pays once per machine and model: an over-estimate there.
-SECONDS = {
-    "planar_reach": {"image": (1.12, 55.5), "proprio": (0.66, 33.8)},
-    "ur5_reach": {"image": (1.11, 55.1), "proprio": (0.59, 29.5)},
-    "nicol_slide": {"image": (5.96, 85.6), "image_baseline": (4.75, 72.4), "proprio": (2.11, 149.4)},
-    "nicol_lift": {"image": (17.68, 81.2), "image_baseline": (13.06, 181.6), "proprio": (4.69, 41.6)},
-}
-SECONDS["nicol_lift_reduced"] = SECONDS["nicol_lift"]  # the transfer target: nicol_lift's preset, not timed apart
-# the ladder's variants of nicol_slide (experiments.paper.ladder): its preset, less proprio; not timed apart
-SECONDS["nicol_slide_ee"] = SECONDS["nicol_slide_ee_obj"] = SECONDS["nicol_slide"]
+# the measured epochs that the estimates read: `python -m experiments.bench.sweep --env TASK --agent AGENT --seeds 5
+# --epochs 3 --out results/scaling/epochs/TASK-AGENT.jsonl`, a 5-seed program of the task's preset alone on one GPU,
+# one process each from an empty compilation cache (results/scaling/figures.json, "An epoch of each task")
+EPOCH_SWEEPS = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
+                            "results", "scaling", "epochs")
 
 
-def kind(task: str, agent: str) -> str:
-    """The `SECONDS` entry of `agent` on `task`: "proprio" for an agent without images; "image_baseline" for a
-    baseline with images where the task has one measured; "image" otherwise."""
+class EpochTime(NamedTuple):
+    """A 5-seed program's measured seconds per epoch and compile seconds, and the task whose sweep they are."""
+
+    per_epoch: float
+    compile: float
+    task: str
+
+
+def read_lines(path: str) -> list[dict]:
+    """The JSON objects of a JSON-lines file (`experiments.bench.sweep --out`)."""
+    with open(path, encoding="utf-8") as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def sweep_seconds(lines: Sequence[dict]) -> tuple[float, float]:
+    """(seconds per epoch: the mean step of `process_seconds`; compile seconds: the first epoch's `variant_seconds`
+    less one epoch) of a sweep's JSON lines, one per epoch (`experiments.bench.sweep --out`)."""
+    per_epoch = (lines[-1]["process_seconds"] - lines[0]["process_seconds"]) / (len(lines) - 1)
+    return per_epoch, lines[0]["variant_seconds"] - per_epoch
+
+
+@functools.cache
+def measured_epochs(folder: str = EPOCH_SWEEPS) -> dict[tuple[str, str], tuple[float, float]]:
+    """(task, agent) -> `sweep_seconds` of each sweep TASK-AGENT.jsonl in `folder` of `DEFAULT_SEEDS` seeds and
+    several epochs; none where the folder is missing (an installed package without results/)."""
+    found = {}
+    for name in sorted(os.listdir(folder)) if os.path.isdir(folder) else ():
+        lines = read_lines(os.path.join(folder, name)) if name.endswith(".jsonl") else []
+        task, _, agent = name.removesuffix(".jsonl").partition("-")
+        if len(lines) > 1 and len(lines[0]["eval_success_seeds"]) == DEFAULT_SEEDS:
+            found[task, agent] = sweep_seconds(lines)
+    return found
+
+
+def timed_agent(task: str, agent: str, measured: Iterable[tuple[str, str]]) -> str:
+    """The agent whose sweep on `task` stands for `agent`'s: proprio_baseline for an agent without images;
+    multimodal_baseline for a baseline with images where `measured` has it on `task` (a baseline encodes one frame
+    fewer a sample in an update); multimodal_bidal otherwise."""
     if not AGENTS[agent].uses_image:
-        return "proprio"
-    return "image_baseline" if agent.endswith("_baseline") and "image_baseline" in SECONDS[task] else "image"
+        return "proprio_baseline"
+    baseline = agent.endswith("_baseline") and (task, "multimodal_baseline") in measured
+    return "multimodal_baseline" if baseline else "multimodal_bidal"
+
+
+def epoch_time(task: str, agent: str, folder: str = EPOCH_SWEEPS) -> EpochTime | None:
+    """The measured epoch of `agent` on `task` (`measured_epochs` of `folder`, `timed_agent`); where that is not
+    measured (a new task; nicol_lift_reduced, nicol_lift's preset), the longest measured epoch of the same agent on
+    another task, else of any agent: an over-estimate, which `estimated_plan` names; None when nothing is measured."""
+    measured = measured_epochs(folder)
+    timed = timed_agent(task, agent, measured)
+    if (task, timed) in measured:
+        return EpochTime(*measured[task, timed], task)
+    same = [key for key in measured if key[1] == timed] or list(measured)
+    if not same:
+        return None
+    longest = max(same, key=lambda key: measured[key][0])
+    return EpochTime(*measured[longest], longest[0])
 
 
 def estimate(arm: Arm, progress: Status) -> float:
-    """Estimated seconds to train what is left of the run (`SECONDS`) at its `progress` (`status`): its compilation
-    and its remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is moved away)."""
+    """Estimated seconds to train what is left of the run (`epoch_time`) at its `progress` (`status`): its
+    compilation and its remaining epochs; 0 when it is done; all its epochs when it is stale (once its folder is
+    moved away); NaN where nothing is measured."""
     state, step, _ = progress
     if state == "done":
         return 0.0
-    per_epoch, compile_s = SECONDS[arm.given["env"]][kind(arm.given["env"], arm.given["agent"])]
-    per_epoch *= arm.config.run.seeds / DEFAULT_SEEDS  # measured at 5 seeds; more cost at most in proportion
-    return compile_s + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
+    timed = epoch_time(arm.given["env"], arm.given["agent"])
+    if timed is None:
+        return float("nan")
+    per_epoch = timed.per_epoch * arm.config.run.seeds / DEFAULT_SEEDS  # 5 seeds measured; more cost in proportion
+    return timed.compile + per_epoch * (arm.epochs - (0 if state == "stale" else step or 0))
 
 
 def block_seeds(arm: Arm, limit: float = BLOCK_SECONDS) -> int:
-    """The most of the arm's seeds that one run trains within `limit` seconds by `estimate` (at least one)."""
-    per_epoch, compile_s = SECONDS[arm.given["env"]][kind(arm.given["env"], arm.given["agent"])]
-    per_seed = per_epoch / DEFAULT_SEEDS * arm.epochs
-    return max(1, min(arm.config.run.seeds, int((limit - compile_s) // per_seed)))
+    """The most of the arm's seeds that one run trains within `limit` seconds by `estimate` (at least one); all of
+    them where nothing is measured."""
+    timed = epoch_time(arm.given["env"], arm.given["agent"])
+    if timed is None:
+        return arm.config.run.seeds
+    per_seed = timed.per_epoch / DEFAULT_SEEDS * arm.epochs
+    return max(1, min(arm.config.run.seeds, int((limit - timed.compile) // per_seed)))
 
 
 def blocks(arm: Arm, limit: float = BLOCK_SECONDS) -> list[Arm]:
@@ -353,13 +391,20 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
     statuses = [status(arm, envs[arm.name].physics_id) for arm in arms]
     seconds = [estimate(arm, progress) for arm, progress in zip(arms, statuses)]
     lines = [heading]
-    lines += [f"{f'{arm.name}: ' if named else ''}{plan_line(arm, envs[arm.name], progress)}; estimated {s:,.0f} s"
+    lines += [f"{f'{arm.name}: ' if named else ''}{plan_line(arm, envs[arm.name], progress)}"
+              + ("" if math.isnan(s) else f"; estimated {s:,.0f} s")
               for arm, progress, s in zip(arms, statuses, seconds)]
-    lines.append(
-        f"estimated time: {duration(sum(seconds))} on one GPU running the runs one after another "
-        "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
-        "included)"
-    )
+    if math.isnan(sum(seconds)):
+        lines.append(f"estimated time: unknown (no measured epochs in {EPOCH_SWEEPS})")
+    else:
+        lines.append(f"estimated time: {duration(sum(seconds))} on one GPU running the runs one after another "
+                     "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, "
+                     "compilation included)")
+    timed = {arm.given["env"]: epoch_time(arm.given["env"], arm.given["agent"]) for arm in arms}
+    borrowed = [f"{task} as {t.task}" for task, t in timed.items() if t is not None and t.task != task]
+    if borrowed:
+        lines.append(f"not measured in results/scaling/epochs, estimated as the longest measured epoch: "
+                     f"{', '.join(borrowed)}")
     done = [run for arm in arms if (run := loaded(arm.run_dir))]
     if done:
         held, summed = report.machine_time(done)

@@ -6,7 +6,7 @@ and so what the visual agents' encoder fails to extract.
         [--ray --gpus-per-cell 0.5 ...] [any learner or network option of experiments.run]
 
 Rungs (`RUNGS`), each two cells, a baseline (DDPG + HER) and a BidAL agent, `--seeds` seeds each at nicol_slide's
-budget (`protocol.EPOCHS`, or `--epochs`), in OUT/<rung>/<agent>:
+budget (`protocol.paper_epochs`, or `--epochs`), in OUT/<rung>/<agent>:
 
 - `image`: visual_baseline and visual_bidal on nicol_slide, as they are (the image alone);
 - `ee`: multimodal_baseline and multimodal_bidal on nicol_slide_ee, whose proprio keeps only the hand's grasp point
@@ -60,7 +60,7 @@ from bidal_jax.run import checkpoint, multihost, rundir, runfiles
 from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
-from experiments.paper.protocol import DEFAULT_SEED, EPOCHS
+from experiments.paper.protocol import DEFAULT_SEED, paper_epochs
 from experiments.probes import encoder
 
 PROG = "python -m experiments.paper.ladder"
@@ -106,7 +106,7 @@ def ladder_arms(rungs: Sequence[Rung], seeds: int, seed: int, epochs: int | None
                 out: str) -> list[Arm]:
     """The ladder's cells in OUT/<rung>/<agent>, rung by rung, each `epochs` or else nicol_slide's budget."""
     return [Arm(f"{rung.name}/{agent}", {"env": rung.env, "agent": agent, "seeds": seeds, "seed": seed, **extra,
-                                         "epochs": epochs or EPOCHS[TASK],
+                                         "epochs": epochs or paper_epochs()[TASK],
                                          "run_dir": os.path.join(out, rung.name, agent)})
             for rung in rungs for agent in rung.agents]
 
@@ -121,7 +121,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, help="seeds of every cell, vmapped as one program")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="first random seed of every run")
     parser.add_argument("--epochs", type=int, default=None,
-                        help=f"epochs of every run (default {TASK}'s budget, {EPOCHS[TASK]})")
+                        help=f"epochs of every run (default {TASK}'s budget, {paper_epochs()[TASK]})")
     parser.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     mode = parser.add_mutually_exclusive_group()
     mode.add_argument("--dry-run", action="store_true", help="print the plan and its estimated time; write nothing")

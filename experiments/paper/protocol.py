@@ -3,7 +3,8 @@
 Shared by the experiments that train the runs (`curves`, `noise_robustness`, `transfer_learning`)
 and `claims`, which measures the paper's claims from their run folders:
 
-- the learning curves (Fig. 4): `TASKS` and their epoch budget `EPOCHS`, the same for every agent;
+- the learning curves (Fig. 4): the tasks and their epoch budgets, the same for every agent, which each task
+  declares (`paper_epochs`: the registered envs' `task.paper_epochs`, envs_mjx/task.py);
 - noise robustness (Table II): `KAPPAS`, the window `LAST_N` per κ, `NOISE_AGENTS`, the noised
   `SEGMENTS`, the paper's figures `PAPER`; `kappa_curves` splits a run of 3 κ × R vmapped runs by
   κ (`kappa_dir` names the folder of one κ's runs alone), `residual_spread` is each run's std around its
@@ -21,20 +22,24 @@ from collections.abc import Callable
 import chex
 import numpy as np
 
-from bidal_jax.config import resolve
-from experiments import report
+import envs_mjx
+from experiments import cli, report
+
 
 # ----- learning curves (Fig. 4) ---------------------------------------------------------------
-# the budget: epochs per task, the same for every agent of the task (experiments.paper.curves): where the slowest
-# agent that learns the task levels off in pilot runs of today's tasks, plus a margin (docs/deviations.md,
-# "Learning-curve budgets"; results/pilots). The reaching tasks': visual_bidal on planar_reach is within 0.05 of its
-# plateau (0.93) from epoch 75, and the visual agents on ur5_reach near theirs by 150; nicol_slide's: the
-# multimodal agents at ≥ 0.9 from epoch 10-13, the visual agents at 0.05-0.06 through 25 epochs
-# (a policy that does nothing scores 0.031: results/floors);
-# nicol_lift's: multimodal_bidal (λ 0.1) at ≥ 0.9 air-goal success from epoch 11, proprio_baseline from 6; each
-# NICOL budget is that level-off epoch plus about 15
-EPOCHS = {"planar_reach": 100, "ur5_reach": 150, "nicol_slide": 30, "nicol_lift": 25}
-TASKS = tuple(EPOCHS)
+def paper_epochs() -> dict[str, int]:
+    """The learning curves' tasks and budgets (experiments.paper.curves), in the registry's order: each registered
+    task that declares one (its env's `task.paper_epochs`: where the slowest agent that learns the task levels off in
+    pilot runs, plus a margin; docs/deviations.md, "Learning-curve budgets"), the same for every agent of the task."""
+    budgets = {name: envs_mjx.task(name).paper_epochs for name in envs_mjx.names()}
+    return {name: epochs for name, epochs in budgets.items() if epochs is not None}
+
+
+def paper_tasks() -> tuple[str, ...]:
+    """The learning curves' tasks (`paper_epochs`), in the registry's order."""
+    return tuple(paper_epochs())
+
+
 # seeds per cell of the grid (a task and an agent), trained in blocks that each finish in `BLOCK_SECONDS`
 # (`grid.blocks`)
 DEFAULT_SEEDS = 5
@@ -132,7 +137,7 @@ def trend_text(curve: report.Curve, last_n: int) -> str:
 def eval_episodes(run: dict) -> int:
     """A run's eval episodes per seed and epoch: its config's eval_envs, else its env and agent preset's."""
     given = run["config"].get("train", {}).get("eval_envs")
-    return int(given or resolve({"env": run["env"], "agent": run["agent"]}).train.eval_envs)
+    return int(given or cli.resolve({"env": run["env"], "agent": run["agent"]}).train.eval_envs)
 
 
 def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
@@ -148,7 +153,7 @@ def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
 def budget(run: dict, default: int | None = None) -> int:
     """A run's epoch budget: its config's epochs, or its experiment's `default` if more (by default its env and
     agent preset's)."""
-    default = default or resolve({"env": run["env"], "agent": run["agent"]}).run.epochs
+    default = default or cli.resolve({"env": run["env"], "agent": run["agent"]}).run.epochs
     return max(int(run["config"]["run"].get("epochs", 0)), default)
 
 

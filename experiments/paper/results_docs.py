@@ -25,6 +25,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+import envs_mjx
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
@@ -52,15 +53,9 @@ over the epochs run. The paper's claims judged on these runs are in [results/cla
 far each verdict bears on the paper in [reproduction.md](reproduction.md)."""
 
 
-def read_lines(path: str) -> list[dict]:
-    """The JSON objects of a JSON-lines file (`experiments.bench.sweep --out`)."""
-    with open(path, encoding="utf-8") as f:
-        return [json.loads(line) for line in f if line.strip()]
-
-
 def sweep_curve(path: str, label: str) -> report.Curve:
     """A sweep's curve (one variant's JSON lines): each epoch's per-seed eval success."""
-    rows = read_lines(path)
+    rows = grid.read_lines(path)
     column = [np.array([row[key] for row in rows], float) for key in ("epoch", "env_steps_per_seed",
                                                                        "process_seconds")]
     return report.Curve("", label, path, *column, np.array([row["eval_success_seeds"] for row in rows], float))
@@ -81,34 +76,36 @@ def first_epoch(epochs: np.ndarray, success: np.ndarray, threshold: float = 0.9)
 
 def epochs_table(root: str, runs: str) -> str:
     """Per sweep file TASK-AGENT[-N-seeds].jsonl: its physics, seeds, the mean step of `process_seconds` per epoch,
-    and compile: the first epoch's `variant_seconds` less one epoch (`grid.SECONDS`'s figures)."""
+    and compile: the first epoch's `variant_seconds` less one epoch (`grid.sweep_seconds`: what the grid's estimates
+    read)."""
     rows = []
     for path in glob.glob(os.path.join(root, runs)):
         task, agent = os.path.basename(path).removesuffix(".jsonl").split("-")[:2]
-        lines = read_lines(path)
-        epoch = (lines[-1]["process_seconds"] - lines[0]["process_seconds"]) / (len(lines) - 1)
-        rows.append((protocol.TASKS.index(task), list(AGENTS).index(agent), [
+        lines = grid.read_lines(path)
+        epoch, compile_s = grid.sweep_seconds(lines)
+        rows.append((envs_mjx.names().index(task), list(AGENTS).index(agent), [
             task, agent, str(len(lines[0]["eval_success_seeds"])), ENGINES[lines[0]["engine"]], f"{epoch:.2f}",
-            f"{lines[0]['variant_seconds'] - epoch:.1f}"]))
+            f"{compile_s:.1f}"]))
     head = ["task", "agent", "seeds", "physics", "epoch (s)", "compile (s)"]
     return report.markdown_table(head, [cells for *_, cells in sorted(rows)])
 
 
 def curves_table(root: str, runs: str) -> str:
     """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column headed by its budget
-    (`protocol.EPOCHS`), "final / AUC"; "—" for a cell without its run folder (an agent not run on that task yet);
+    (`protocol.paper_epochs`), "final / AUC"; "—" for a cell without its run folder (an agent not run on that task yet);
     a cell whose run is not today's (`grid.stale_runs` against the cell the grid trains there by default,
     `grid.curve_arms`, and its task's physics today) marked with `grid.STALE` (its epochs are its own); the last row
     the tasks' floors over all goals (root/floors, `report.load_floors`). Each run folder is read once."""
     out = os.path.join(root, runs)
-    tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(out, t))]
+    budgets = protocol.paper_epochs()
+    tasks = [t for t in budgets if os.path.isdir(os.path.join(out, t))]
     arms = [arm for arm in grid.curve_arms(tasks, AGENTS, protocol.DEFAULT_SEEDS, protocol.DEFAULT_SEED, None, {}, out)
             if os.path.isdir(arm.run_dir)]
     found = {arm.name: report.load_run(arm.run_dir) for arm in arms}
     stale = set(grid.stale_runs(arms, found, grid.physics_today(tasks)))
     names = {(arm.given["env"], arm.given["agent"]): arm.name for arm in arms}
     agents = [a for a in AGENTS if any((t, a) in names for t in tasks)]
-    head = ["agent", *(f"{t} ({protocol.EPOCHS[t]} epochs)" for t in tasks)]
+    head = ["agent", *(f"{t} ({budgets[t]} epochs)" for t in tasks)]
 
     def cell(task: str, agent: str) -> str:
         name = names.get((task, agent))

@@ -65,7 +65,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from bidal_jax.config import INIT_NORMALISERS, ConfigError, RunConfig, resolve
+from bidal_jax.config import INIT_NORMALISERS, ConfigError, RunConfig
 from bidal_jax.run import multihost
 from experiments import cli, cluster, report, stats
 from experiments.paper import grid
@@ -125,7 +125,7 @@ def make_arms(args: argparse.Namespace, extra: dict[str, Any], out: str) -> list
     for name, given, epochs in runs:
         given = {**given, "run_dir": os.path.join(out, name), **({"epochs": epochs} if epochs else {})}
         after = ("source",) if name == "transfer" and not args.source else ()  # under Ray: once the source ends
-        arms.append(Arm(name, {**given, "epochs": resolve(given).run.epochs}, after=after))
+        arms.append(Arm(name, {**given, "epochs": cli.resolve(given).run.epochs}, after=after))
     return arms
 
 

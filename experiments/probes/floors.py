@@ -10,7 +10,7 @@ machine, the date and commit, and the floors with their 95 % Monte Carlo half-wi
 subset -> value, half_width, resets, rollouts), which docs/results.md's table, the other tables and claims read
 (`experiments.report.load_floors`) to show each score beside its floor. By default M is large for the reaching
 tasks (cheap: their arms droop under the idle action, so rollouts carry the estimate) and 512 for the NICOL
-tasks (0.1 s an episode on a CPU; their cube rests where it starts, so the resets carry it).
+tasks (whose episodes are costly; their cube rests where it starts, so the resets carry it).
 
 Exit codes: 0 written; 2 a bad option (one `error: ...` line, nothing written); 4 the write failed; 130 Ctrl-C.
 """
@@ -74,7 +74,7 @@ def section(found: dict[str, dict[str, floors.Floor]], command: str, at: str) ->
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0])
-    parser.add_argument("--tasks", default=",".join(protocol.TASKS), help="comma list of tasks")
+    parser.add_argument("--tasks", default=",".join(protocol.paper_tasks()), help="comma list of tasks")
     parser.add_argument("--resets", type=int, default=RESETS, help="reset states per task")
     parser.add_argument("--rollouts", type=int, default=None, help="idle episodes per task (default: "
                         + ", ".join(f"{t} {n:,}" for t, n in ROLLOUTS.items()) + ")")
@@ -86,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        tasks = cli.parse_names(args.tasks, "--tasks", "task", protocol.TASKS)
+        tasks = cli.parse_names(args.tasks, "--tasks", "task", protocol.paper_tasks())
         for name in ("resets", "rollouts"):
             if getattr(args, name) is not None and getattr(args, name) < 2:
                 raise ConfigError(f"--{name} {getattr(args, name)}: must be at least 2")
@@ -100,7 +100,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                    args.rollouts or ROLLOUTS[task], args.resets)
         print(task, ", ".join(f"{name} {f.value:.4f} ± {f.half_width:.4f}" for name, f in found[task].items()),
               flush=True)
-    options = [f"--tasks {args.tasks}"] * (tasks != protocol.TASKS) + [f"--resets {args.resets}"] * (
+    options = [f"--tasks {args.tasks}"] * (tasks != protocol.paper_tasks()) + [f"--resets {args.resets}"] * (
         args.resets != RESETS) + [f"--rollouts {args.rollouts}"] * (args.rollouts is not None)
     options += [f"--seed {args.seed}"] * (args.seed != 0) + [f"--out {args.out}"]
     path = os.path.join(args.out, report.FLOORS_FILE)

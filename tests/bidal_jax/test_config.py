@@ -2,10 +2,24 @@
 three configs travel as one value whose JSON form reads back, older records included."""
 
 import dataclasses
+import os
 
 import pytest
 
-from bidal_jax.config import CONFIG_CLASSES, CONV_IMPLS, REMOVED_CONV_IMPLS, Config, Rule, recorded, resolve
+from bidal_jax import config as config_lib
+from bidal_jax.config import (
+    CONFIG_CLASSES,
+    CONV_IMPLS,
+    REMOVED_CONV_IMPLS,
+    Config,
+    ConfigError,
+    Rule,
+    RunConfig,
+    TrainConfig,
+    recorded,
+)
+from experiments.cli import resolve
+from tests.helpers import REPO
 
 
 def test_every_config_field_has_its_help_and_rule():
@@ -42,3 +56,21 @@ def test_a_stored_config_older_than_target_encoder_reads_the_target_encoder():
     assert stored["train"]["target_encoder"] == "online"
     del stored["train"]["target_encoder"]
     assert Config.from_dict(stored, "old").train.target_encoder == "target"
+
+
+def test_a_preset_lies_between_the_defaults_and_the_options_given_and_names_config_fields_only():
+    preset = {"run": {"epochs": 7}, "train": {"num_envs": 4, "batch_size": 32}}
+    config = config_lib.resolve({"env": "planar_reach", "num_envs": 8}, lambda env, agent: preset)
+    assert (config.run.epochs, config.train.num_envs, config.train.batch_size) == (7, 8, 32)
+    assert config.train.gamma == TrainConfig().gamma and config.run.env == "planar_reach"
+    with pytest.raises(ConfigError, match="the task's preset sets train.num_env, model.size, not a config field"):
+        config_lib.resolve({}, lambda env, agent: {"train": {"num_env": 4}, "model": {"size": 1}})
+
+
+def test_the_usage_guide_states_the_checkpoint_intervals_the_code_sets():
+    with open(os.path.join(REPO, "docs", "usage.md"), encoding="utf-8") as f:
+        usage = f.read()
+    nicol = {resolve({"env": env}).run.checkpoint_every for env in ("nicol_slide", "nicol_lift", "nicol_lift_reduced")}
+    assert nicol == {10} and RunConfig().checkpoint_every == 5
+    assert f"every `--checkpoint-every` epochs ({RunConfig().checkpoint_every}; 10 on the NICOL tasks" in usage
+    assert "NICOL presets save a checkpoint every 10 epochs" in usage

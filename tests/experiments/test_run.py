@@ -107,7 +107,8 @@ def test_help_opens_with_the_tasks_agents_and_presets_before_the_options():
     its preset's epochs (the first 17 lines), then that the presets override the defaults and that --print-config
     prints the resolved config, before the first option."""
     import envs_mjx
-    from bidal_jax.config import AGENTS, resolve
+    from bidal_jax.config import AGENTS
+    from experiments.cli import resolve
 
     lines = cli.run_parser().format_help().splitlines()
     head = "\n".join(lines[:17])

@@ -11,8 +11,8 @@ from jax.flatten_util import ravel_pytree
 
 import envs_mjx
 from bidal_jax import train
-from bidal_jax.config import resolve
 from bidal_jax.run import checkpoint, loop
+from experiments.cli import resolve
 
 SEEDS = 2
 

@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from bidal_jax.config import resolve
 from bidal_jax.run import cachefolder, exported
 from experiments import run
+from experiments.cli import resolve
 from tests.helpers import REPO, TINY, rows
 
 LOADED = "the traced epoch program loaded from"

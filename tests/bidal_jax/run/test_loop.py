@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import envs_mjx
-from bidal_jax.config import ConfigError, TrainConfig, resolve
+from bidal_jax.config import ConfigError, TrainConfig
 from bidal_jax.run import checkpoint, devices, loop
-from experiments import run
+from experiments import cli, run
 from tests.helpers import REPO, restored_state
 
 TINY = [
@@ -116,7 +116,7 @@ def test_warps_contact_buffer_is_sized_for_one_devices_envs():
 
 def test_a_run_on_two_gpus_steps_warp_sized_for_one_gpus_envs(monkeypatch):
     """`use_physics` asks the env for Warp with the worlds of one device: 8 seeds of 2,560 envs on 2 GPUs."""
-    config = resolve({"env": "nicol_slide", "agent": "multimodal_bidal", "seeds": 8})
+    config = cli.resolve({"env": "nicol_slide", "agent": "multimodal_bidal", "seeds": 8})
     monkeypatch.setattr(devices.importlib.util, "find_spec", lambda name: object())
     asked = []
     env = types.SimpleNamespace(use_backend=lambda engine, worlds: asked.append((engine, worlds)))
@@ -226,7 +226,7 @@ def test_a_new_runs_state_and_epoch_built_side_by_side_are_the_programs_own(tmp_
     given = {"env": "planar_reach", "agent": "proprio_baseline", "seeds": 2, "num_envs": 4, "cycles_per_epoch": 2,
              "updates_per_cycle": 2, "batch_size": 8, "buffer_episodes": 8, "eval_envs": 4,
              "run_dir": str(tmp_path / "run")}
-    env, config = envs_mjx.make("planar_reach", render=False), resolve(given)
+    env, config = envs_mjx.make("planar_reach", render=False), cli.resolve(given)
     programs = loop.make_programs(env, config)
     expected = programs.epoch(programs.init(programs.keys()))
     epoch, state, step, _ = loop.build(env, config, programs, resume=False, log=lambda message: None)

@@ -74,7 +74,8 @@ def test_a_lock_left_by_a_sigkilled_process_does_not_block_the_next_run(tmp_path
     assert os.listdir(run_dir) == [rundir.LOCK_FILE]  # its file stays; its lock went with it
     given = {"env": "planar_reach", "agent": "proprio_baseline", "num_envs": 4, "buffer_episodes": 8,
              "eval_envs": 4, "run_dir": str(run_dir)}
-    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make):  # checks, then locks
+    with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make,
+                           preset=cli.task_preset):  # checks, then locks
         assert f"PID {os.getpid()}" in (run_dir / rundir.LOCK_FILE).read_text()
     assert os.listdir(run_dir) == []  # released when the block ends
 

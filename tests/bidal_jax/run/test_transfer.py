@@ -21,11 +21,11 @@ import pytest
 import envs_mjx
 from bidal_jax import normalizer
 from bidal_jax.agents import ddpg
-from bidal_jax.config import Config, resolve
+from bidal_jax.config import Config
 from bidal_jax.run import checkpoint, preflight, transfer
 from bidal_jax.train import make_train
 from envs_mjx.planar_reach import PlanarReach
-from experiments import run
+from experiments import cli, run
 from experiments.paper import grid
 from tests.helpers import assert_refused, restored_state
 
@@ -160,7 +160,7 @@ def test_the_proprio_normaliser_starts_afresh_by_default(transferred, source_sta
 
 def test_inherit_normaliser_keeps_the_sources_statistics_with_the_kept_rows(transferred, source, source_state):
     _, fresh, _ = transferred
-    run = dataclasses.replace(resolve({"env": NO_QDOT, "seeds": SEEDS}).run, init_from=source[1],
+    run = dataclasses.replace(cli.resolve({"env": NO_QDOT, "seeds": SEEDS}).run, init_from=source[1],
                               init_normaliser="inherit")
     segments = envs_mjx.make(NO_QDOT, render=False).observation_spec.proprio_segments
     initial = transfer.make_initializer(run, segments, envs_mjx.make, log=lambda message: None)(fresh)
@@ -178,7 +178,7 @@ def test_a_transfer_run_recorded_before_init_normaliser_inherited(source):
     old = {"run": {"env": NO_QDOT, "init_from": source[1]}, "train": {}, "network": {}}
     assert Config.from_dict(old, "old").run.init_normaliser == "inherit"
     assert Config.from_dict({**old, "run": {"env": NO_QDOT}}, "scratch").run.init_normaliser == "fresh"
-    today = resolve({"env": NO_QDOT, "init_from": source[1]})
+    today = cli.resolve({"env": NO_QDOT, "init_from": source[1]})
     assert grid.config_changes(old, today) == ("config differs: init_normaliser inherit → fresh, "
                                                "target_encoder target → online")
 
@@ -197,7 +197,8 @@ def test_resume_keeps_the_transfer_fields_and_does_not_transfer_again(transferre
     run_dir, _, _ = transferred
     monkeypatch.setattr(transfer, "check", lambda *a, **k: pytest.fail("a resumed run was checked for transfer"))
     with preflight.prepare(
-        {"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=True
+        {"run_dir": run_dir, "epochs": 2}, env_names=envs_mjx.names(), make_env=envs_mjx.make,
+        preset=cli.task_preset, resume=True,
     ) as prepared:
         resumed = prepared.config.run
     assert (resumed.init_from, resumed.init_parts) == (source[1], ",".join(PARTS))
@@ -254,7 +255,7 @@ def test_init_from_names_a_run_and_optionally_a_checkpoint():
 def proprio_source(tmp_path_factory):
     """A checkpoint of a proprio_baseline run on planar_reach (its initial state: nothing trained)."""
     run_dir = str(tmp_path_factory.mktemp("proprio") / "run")
-    config = resolve(
+    config = cli.resolve(
         {"env": "planar_reach", "agent": "proprio_baseline", "seeds": SEEDS, "buffer_episodes": 8, "num_envs": 4}
     )
     init, _ = make_train(envs_mjx.make("planar_reach", render=False), config)

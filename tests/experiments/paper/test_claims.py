@@ -20,7 +20,7 @@ from tests.conftest import TODAY, write_fake_run
 EPOCHS = 100  # longer than every budget of a noise or transfer run, which the fake runs must reach to be measured
 # every task's floor 0.1 (0.01 over nicol_lift's air goals, half its goals): above it the BidAL agents learn, the
 # visual baseline at 0.03-0.07 does not
-FLOORS = {task: {"all": report.Floor(0.1, 0.001, 1.0)} for task in protocol.TASKS}
+FLOORS = {task: {"all": report.Floor(0.1, 0.001, 1.0)} for task in protocol.paper_tasks()}
 FLOORS["nicol_lift"] = {**FLOORS["nicol_lift"], "air": report.Floor(0.01, 0.001, 0.5)}
 
 
@@ -113,14 +113,14 @@ def write_grid(fake_run, out):
     """The curves grid as the paper has it: BidAL agents learn, the visual baseline stays below the floors
     (`FLOORS`), multimodal BidAL leads everywhere by 0.07 and on lifting by 0.37, and rises twice as fast as the
     others (0.1 an epoch against 0.05, up to its level): a larger AUC, fewer env steps to 0.5 and 0.9."""
-    for task in protocol.TASKS:
+    for task in protocol.paper_tasks():
         lift = task == "nicol_lift"
         level = {"multimodal_bidal": 0.97, "multimodal_bidal_no_ri": 0.9, "visual_bidal": 0.7, "visual_baseline": 0.05,
                  "multimodal_baseline": 0.6 if lift else 0.9, "proprio_baseline": 0.5 if lift else 0.85}
         for agent in AGENTS:
             levels = [level[agent] + 0.01 * (i - 2) for i in range(5)]
             rate = 0.1 if agent == claims.OURS else 0.05
-            success = [[min(x, rate * (e + 1)) for x in levels] for e in range(protocol.EPOCHS[task])]
+            success = [[min(x, rate * (e + 1)) for x in levels] for e in range(protocol.paper_epochs()[task])]
             fake_run(str(out / task / agent), task, success, None, agent)
 
 
@@ -129,7 +129,7 @@ def write_plain(fake_run, out, lifting, exploration_starts=0.0):
     success 0.8; the others 0.1)."""
     for agent, k in lifting.items():
         run_dir = str(out / "nicol_lift" / agent)
-        air = [[0.8] * k + [0.1] * (5 - k)] * protocol.EPOCHS["nicol_lift"]
+        air = [[0.8] * k + [0.1] * (5 - k)] * protocol.paper_epochs()["nicol_lift"]
         fake_run(run_dir, "nicol_lift", air, None, agent, given={"exploration_starts": exploration_starts})
         with_air(run_dir, air)
 
@@ -186,7 +186,7 @@ def test_learning_claims_not_reproduced_when_the_visual_baseline_learns_a_task(t
     write_grid(fake_run, tmp_path)
     shutil.rmtree(tmp_path / "planar_reach" / "visual_baseline")
     fake_run(str(tmp_path / "planar_reach" / "visual_baseline"), "planar_reach",
-             rows([0.66] * 5, protocol.EPOCHS["planar_reach"]), None, "visual_baseline")
+             rows([0.66] * 5, protocol.paper_epochs()["planar_reach"]), None, "visual_baseline")
     learn, visual, *_ = claims.learning_claims(claims.load_grid(str(tmp_path)), 10, set(), FLOORS)
     assert learn.verdict == "reproduced" and visual.verdict == "not reproduced"
     assert visual.ours.startswith("highest: visual_baseline on planar_reach 0.660 [")
@@ -313,10 +313,10 @@ def test_learning_speed_is_judged_by_auc_against_the_papers_baselines(tmp_path, 
 
 def test_a_secondary_measure_against_the_claim_does_not_reverse_it(tmp_path, fake_run):
     """multimodal_bidal's AUC equals the others' while it ends lower: final success is against, AUC unclear."""
-    for task in protocol.TASKS:
+    for task in protocol.paper_tasks():
         for agent in AGENTS:
-            curve = [[0.5] * 5] * (protocol.EPOCHS[task] // 2) + [[0.9 + 0.01 * i for i in range(5)]] * (
-                protocol.EPOCHS[task] - protocol.EPOCHS[task] // 2)
+            curve = [[0.5] * 5] * (protocol.paper_epochs()[task] // 2) + [[0.9 + 0.01 * i for i in range(5)]] * (
+                protocol.paper_epochs()[task] - protocol.paper_epochs()[task] // 2)
             if agent == claims.OURS:  # the same mean over epochs, but reaching its level earlier and ending lower
                 curve = [[0.7 + 0.01 * i for i in range(5)]] * len(curve)
             fake_run(str(tmp_path / task / agent), task, curve, None, agent)
@@ -326,11 +326,11 @@ def test_a_secondary_measure_against_the_claim_does_not_reverse_it(tmp_path, fak
 
 
 def test_a_measure_at_the_ceiling_does_not_decide(tmp_path, fake_run):
-    for task in protocol.TASKS:
+    for task in protocol.paper_tasks():
         for agent in AGENTS:
             level = 0.99 if agent != claims.VISUAL else 0.05
             fake_run(str(tmp_path / task / agent), task, rows([level + 0.001 * (i - 2) for i in range(5)],
-                                                              protocol.EPOCHS[task], 0.002), None, agent)
+                                                              protocol.paper_epochs()[task], 0.002), None, agent)
     rows_ = learning(tmp_path)
     assert "at the ceiling" in rows_["baseline"].ours
     assert rows_["baseline"].verdict == "not reproduced (at the ceiling: no check decides)"
@@ -355,7 +355,7 @@ def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
     # multimodal_bidal slides but never lifts: 0.97 overall, 0.1 on air goals: above their do-nothing floor (0.01)
     # but not above what a policy that never lifts scores there (0.125)
-    with_air(str(tmp_path / "nicol_lift" / claims.OURS), [[0.1] * 5] * protocol.EPOCHS["nicol_lift"])
+    with_air(str(tmp_path / "nicol_lift" / claims.OURS), [[0.1] * 5] * protocol.paper_epochs()["nicol_lift"])
     rows_ = learning(tmp_path)
     assert rows_["learn"].verdict == "not reproduced"
     assert rows_["learn"].ours.startswith("lowest: multimodal_bidal on nicol_lift 0.100 [0.100, 0.100] (floor 0.125, "

@@ -4,6 +4,7 @@ task, seed blocks, resuming, stale runs, refusals, the plain lifting variant and
 
 import csv
 import json
+import math
 import os
 import shlex
 
@@ -14,7 +15,7 @@ import envs_mjx
 from bidal_jax import config as config_lib
 from bidal_jax.run import loop
 from experiments import report
-from experiments.paper import curves, grid
+from experiments.paper import curves, grid, protocol
 from tests.conftest import TODAY, write_fake_run
 from tests.helpers import REPO
 
@@ -48,7 +49,7 @@ def _arms(argv, out="out"):
 
 
 def test_the_grid_is_the_papers_tasks_and_agents():
-    assert curves.TASKS == TASKS and set(TASKS) < set(envs_mjx.names())  # nicol_lift_reduced is not in it
+    assert protocol.paper_tasks() == TASKS and set(TASKS) < set(envs_mjx.names())  # nicol_lift_reduced is not in it
     arms = _arms([])
     assert [a.name for a in arms[:6]] == [f"planar_reach/{agent}" for agent in config_lib.AGENTS]
     assert len(arms) == 24 and arms[-1].run_dir == os.path.join("out", "nicol_lift", "multimodal_bidal_no_ri")
@@ -91,31 +92,49 @@ def test_dry_run_lists_every_run_and_the_estimate_and_writes_nothing(tmp_path, n
         f"seed in {out}/ur5_reach/proprio_baseline [new]; estimated 118 s"  # 29.5 s + 150 × 0.59 s
     ) in lines
     # the reaching tasks (1 + 5 image agents), then (proprio, 2 baselines and 3 BidAL agents) on nicol_slide and
-    # nicol_lift: (100 + 5 × 167.5) + (118 + 5 × 221.6) + (212.7 + 2 × 214.9 + 3 × 264.4)
-    # + (158.9 + 2 × 508.1 + 3 × 523.2)
-    assert "estimated time: 6,344 s (1.8 h) on one GPU running the runs one after another" in printed
+    # nicol_lift, from the sweeps' unrounded figures: (100 + 5 × 167.2) + (118 + 5 × 221.4) + (212.7 + 2 × 214.9
+    # + 3 × 264.4) + (158.9 + 2 × 508.1 + 3 × 523.2)
+    assert "estimated time: 6,338 s (1.8 h) on one GPU running the runs one after another" in printed
+    assert "not measured" not in printed  # every task of the grid has its sweeps
     assert lines[-1] == "dry run: nothing trained or written"
 
 
 @pytest.mark.parametrize("task", TASKS)
-def test_the_estimates_are_the_measured_epochs_in_results(task):
-    """Each `SECONDS` entry is its sweep's in results/scaling/epochs (5 seeds, 3 epochs): the mean step of
-    `process_seconds` per epoch, and the first epoch's `variant_seconds` less one epoch, so the estimate follows
-    the measurements, not copied figures."""
-    measured = {"image": "multimodal_bidal", "image_baseline": "multimodal_baseline", "proprio": "proprio_baseline"}
-    for kind, seconds in grid.SECONDS[task].items():
-        with open(os.path.join(REPO, "results", "scaling", "epochs", f"{task}-{measured[kind]}.jsonl")) as f:
+def test_the_estimates_read_the_measured_epochs_in_results(task):
+    """Each agent's estimate is its stand-in's sweep in results/scaling/epochs (5 seeds, 3 epochs): the mean step of
+    `process_seconds` per epoch, and the first epoch's `variant_seconds` less one epoch."""
+    for agent in config_lib.AGENTS:
+        timed, stand_in = grid.epoch_time(task, agent), grid.timed_agent(task, agent, grid.measured_epochs())
+        with open(os.path.join(REPO, "results", "scaling", "epochs", f"{task}-{stand_in}.jsonl")) as f:
             rows = [json.loads(line) for line in f]
         assert {row["engine"] for row in rows} == {"warp" if task.startswith("nicol") else "jax"}
         assert [row["epoch"] for row in rows] == [1, 2, 3] and {row["variant"] for row in rows} == {"preset"}
         per_epoch = (rows[-1]["process_seconds"] - rows[0]["process_seconds"]) / 2
-        assert seconds == pytest.approx((per_epoch, rows[0]["variant_seconds"] - per_epoch), abs=0.05)
+        assert timed == (pytest.approx(per_epoch), pytest.approx(rows[0]["variant_seconds"] - per_epoch), task)
 
 
-def test_each_agent_takes_its_kinds_estimate():
-    assert [grid.kind("nicol_lift", agent) for agent in config_lib.AGENTS] == [
-        "proprio", "image_baseline", "image_baseline", "image", "image", "image"]
-    assert {grid.kind("planar_reach", agent) for agent in config_lib.AGENTS if agent != "proprio_baseline"} == {"image"}
+def test_each_agent_takes_its_stand_ins_sweep():
+    measured = grid.measured_epochs()
+    assert [grid.timed_agent("nicol_lift", agent, measured) for agent in config_lib.AGENTS] == [
+        "proprio_baseline", "multimodal_baseline", "multimodal_baseline", "multimodal_bidal", "multimodal_bidal",
+        "multimodal_bidal"]
+    assert {grid.timed_agent("planar_reach", agent, measured) for agent in config_lib.AGENTS
+            if agent != "proprio_baseline"} == {"multimodal_bidal"}
+
+
+def test_a_task_without_a_sweep_is_estimated_as_the_longest_measured_epoch_and_nothing_measured_as_unknown(
+        tmp_path, monkeypatch):
+    """No KeyError for a task that results/ has not timed (nicol_lift_reduced, a new task): the longest measured
+    epoch of its stand-in agent; where results/ is missing, no estimate, and a cell is one block of all its seeds."""
+    longest = max(grid.epoch_time(task, "multimodal_bidal") for task in TASKS)
+    assert longest.task == "nicol_lift"
+    assert grid.epoch_time("nicol_lift_reduced", "multimodal_bidal") == longest
+    assert grid.epoch_time("unknown_task", "visual_baseline") == longest  # no baseline sweep of its own
+    assert grid.epoch_time("nicol_lift", "proprio_baseline", str(tmp_path)) is None
+    cell = next(a for a in _arms(["--seeds", "50"]) if a.name == "nicol_lift/visual_bidal")
+    assert len(grid.blocks(cell)) > 1
+    monkeypatch.setattr(grid, "measured_epochs", lambda folder: {})
+    assert grid.blocks(cell) == [cell] and math.isnan(grid.estimate(cell, grid.Status("new", None, None)))
 
 
 def test_done_runs_are_skipped_interrupted_resumed_and_unstarted_started_again(tmp_path, no_nicol, fake_run, capsys):
@@ -192,14 +211,16 @@ def test_training_compiles_into_the_runs_persistent_cache(tmp_path, monkeypatch,
     [
         (
             ["--tasks", "foo"],
-            "error: --tasks foo: unknown task 'foo'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift",
+            "error: --tasks foo: unknown task 'foo'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift, "
+            "nicol_lift_reduced, nicol_slide_ee, nicol_slide_ee_obj",
         ),
-        (
+        (  # a registered task without a learning-curve budget needs --epochs
             ["--tasks", "nicol_slide,nicol_lift_reduced"],
-            "error: --tasks nicol_slide,nicol_lift_reduced: unknown task "
-            "'nicol_lift_reduced'; allowed: planar_reach, ur5_reach, nicol_slide, nicol_lift",
+            "error: --tasks nicol_slide,nicol_lift_reduced: nicol_lift_reduced declares no learning-curve budget "
+            "(its env's task.paper_epochs); give --epochs N",
         ),
-        (["--tasks", ","], "error: --tasks ',': name at least one of planar_reach, ur5_reach, nicol_slide, nicol_lift"),
+        (["--tasks", ","], "error: --tasks ',': name at least one of planar_reach, ur5_reach, nicol_slide, nicol_lift, "
+         "nicol_lift_reduced, nicol_slide_ee, nicol_slide_ee_obj"),
         (
             ["--agents", "proprio_baseline,bidal"],
             "error: --agents proprio_baseline,bidal: unknown agent 'bidal'; allowed: "
