@@ -15,9 +15,12 @@ frame), before and after the object moves by ε along the axis (hidden behind an
   the tool point, the part of the arm that every joint moves furthest) at configurations of the goal
   distribution, turned by ε = 0.1 rad about one joint.
 
-Goal markers are moved out of view: the probe asks what the object's own motion shows.
+The probe asks what the object's own motion shows: the other moving bodies (the arm, goal markers) are not
+drawn, since where they stand is no part of the goal, and whether they hide the object in the states the task
+passes through is the visibility probe's measure (`experiments.probes.visibility`). `--others` draws them too
+(NICOL's arm at rest over the cube's start region; the markers moved out of view).
 
-    python -m experiments.probes.resolvability --env nicol_slide [--states 256] [--supersample 4] [--seed 0]
+    python -m experiments.probes.resolvability --env nicol_slide [--states 256] [--supersample 4] [--seed 0] [--others]
 
 Prints a markdown table: per goal axis the mean shift in pixels per ε, its 10th percentile (the contract,
 `CONTRACT_PX`, holds it there) and the share of states where the object is hidden.
@@ -26,6 +29,7 @@ Prints a markdown table: per goal axis the mean shift in pixels per ε, its 10th
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import sys
 
@@ -37,7 +41,7 @@ from mujoco import mjx
 import envs_mjx
 from bidal_jax.config import ConfigError
 from envs_mjx.base import IMAGE_SHAPE, Env
-from envs_mjx.camera import Camera
+from envs_mjx.camera import VISIBLE_GROUPS, Camera
 from envs_mjx.nicol import NicolEnv, NicolLift
 from envs_mjx.planar_reach import LINK_LENGTH, PlanarReach
 from envs_mjx.planar_reach import forward_kinematics as planar_fk
@@ -117,11 +121,24 @@ def centroid(ids: jax.Array, geoms: tuple[int, ...], supersample: int) -> tuple[
     return jnp.stack([rows, cols]), count
 
 
-def shifts(env: Env, qpos: jax.Array, supersample: int = SUPERSAMPLE) -> tuple[np.ndarray, np.ndarray]:
+def object_camera(env: Env, supersample: int, others: bool = False) -> Camera:
+    """`env`'s camera, casting `supersample`² rays a pixel, that draws of the moving bodies only the task's object
+    (`others`: all of them, as the env's camera does)."""
+    model = copy.copy(env.mj_model)  # a deep copy: geom groups change below
+    if not others:
+        moving = model.body_weldid[model.geom_bodyid] != 0
+        hidden = moving & ~np.isin(np.arange(model.ngeom), target(env).geoms)
+        model.geom_group[hidden] = len(VISIBLE_GROUPS)  # past the groups the camera draws
+    return Camera(model, env.camera_name, IMAGE_SHAPE[0], supersample=supersample)
+
+
+def shifts(env: Env, qpos: jax.Array, supersample: int = SUPERSAMPLE,
+           others: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(pixels the object's image centroid moves per ε [N, axes], whether it is hidden before or after [N, axes]),
-    at the configurations `qpos` [N, nq]; a hidden object counts as a shift of 0."""
+    at the configurations `qpos` [N, nq], the other moving bodies drawn where `others`; a hidden object counts
+    as a shift of 0."""
     tgt = target(env)
-    camera = Camera(env.mj_model, env.camera_name, IMAGE_SHAPE[0], supersample=supersample)
+    camera = object_camera(env, supersample, others)
 
     def look(q):
         data = env.blank_data().replace(qpos=q)
@@ -177,12 +194,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--supersample", type=int, default=SUPERSAMPLE,
                         help="rays per pixel side the centroid is measured with")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--others", action="store_true",
+                        help="draw the other moving bodies too (the arm, which may hide part of the object)")
     args = parser.parse_args(argv)
     for flag, value in (("--states", args.states), ("--supersample", args.supersample)):
         if value < 1:
             return cli.exit_code(ConfigError(f"{flag} {value}: must be at least 1"))
     env = envs_mjx.make(args.env, render=False)
-    px, hidden = shifts(env, sample(env, args.states, args.seed), args.supersample)
+    px, hidden = shifts(env, sample(env, args.states, args.seed), args.supersample, args.others)
     print(table(env, px, hidden))
     return 0
 
