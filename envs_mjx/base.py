@@ -35,6 +35,9 @@ from envs_mjx.task import Task
 ASSETS_DIR = importlib.resources.files("envs_mjx.assets")
 CONTROL_PERIOD = 0.04  # seconds, 25 Hz (docs/tasks.md)
 IMAGE_SHAPE = (42, 42, 1)  # grayscale, paper Table I
+# the geom group of goal markers that videos draw but the agents' camera does not (it sees groups 0-2,
+# `camera.VISIBLE_GROUPS`): NICOL's, whose goal reaches the agents as a vector that HER relabels (docs/tasks.md)
+MARKER_GROUP = 5
 # `jax.named_scope`s of a step's physics and camera: profiles attribute their kernels by them (experiments/bench)
 PHYSICS_SCOPE, CAMERA_SCOPE = "physics", "camera"
 
@@ -267,10 +270,12 @@ class Env(abc.ABC):
 
     @property
     def physics_id(self) -> str:
-        """A fingerprint of the physics this env steps: 16 hex digits of the SHA-256 of its compiled model
-        (MuJoCo's binary MJB, so every number of the model file and of `set_options` counts; a MuJoCo release
-        that changes the format changes it too). Runs record it in config.json (`bidal_jax.run.loop`), and
-        `experiments.paper.claims` marks runs made on other physics than today's."""
+        """A fingerprint of the physics this env steps and of the scene its camera sees: 16 hex digits of the
+        SHA-256 of its compiled model (MuJoCo's binary MJB, so every number of the model file and of `set_options`
+        counts, the camera's pose and field of view and each geom's group, which decides what the camera draws,
+        among them; a MuJoCo release that changes the format changes it too). Runs record it in config.json
+        (`bidal_jax.run.loop`), and the grid (`experiments.paper.grid.stale`) and `experiments.paper.claims` mark
+        runs made on another model than today's, another camera included, as stale."""
         buffer = np.zeros(mujoco.mj_sizeModel(self.mj_model), np.uint8)
         mujoco.mj_saveModel(self.mj_model, None, buffer)
         return hashlib.sha256(buffer.tobytes()).hexdigest()[:16]

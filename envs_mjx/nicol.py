@@ -2,9 +2,13 @@
 
 The scene (`assets/nicol.xml`, documented in `assets/README.md`) is NICOL's right
 OpenManipulator-P arm with a simplified RH8D hand at a table, a 0.05 m cube and a dark
-red ellipsoid goal marker, seen by a fixed camera on the robot's right a little above the table
-(the hand, which holds the cube from above, does not hide it from there:
-`python -m experiments.probes.visibility`).
+red ellipsoid goal marker, seen by a fixed camera on the robot's right, high above the table and
+looking down 38° with a narrow field of view: steep enough that moving the cube by ε along either
+table axis moves its image by ≥ 1.5 px (`python -m experiments.probes.resolvability`), and low
+enough that the hand, which holds the cube from above, does not hide it
+(`python -m experiments.probes.visibility`). The agents' frames do not draw the goal marker (its
+geom is in `MARKER_GROUP`, which videos draw): the goal reaches the agents as a vector that HER
+relabels, and a marker at the episode's goal would contradict the relabelled one.
 
 Action (A = 7, paper Table I), each entry in [-1, 1]:
   0-2  hand position increment in Cartesian space, at most `MAX_MOVE` = 0.05 m per axis;

@@ -16,7 +16,8 @@ of the run's κ (how far a policy trained at one noise level holds at others); t
 video's agent sees clean observations.
 
 `--video out.mp4` also renders `--video-episodes` episodes of seed 0 with MuJoCo's own
-renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view.
+renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view; MuJoCo's render also
+draws the goal markers the agent's frames leave out (`envs_mjx.base.MARKER_GROUP`, NICOL's).
 
 Exit codes: 0 done; 2 bad input: an option, a checkpoint, a --video or --json folder that does not exist or
 cannot be written, or a machine where MuJoCo cannot render a --video (each refused before the evaluation runs); 4
@@ -41,6 +42,7 @@ from bidal_jax.config import ConfigError
 from bidal_jax.run import rundir, runfiles
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.policy import TrainedPolicy, evaluate_seeds, load_noise, load_policy
+from envs_mjx.base import MARKER_GROUP
 from experiments import cli
 from experiments.stats import mean_interval, wilson_interval
 
@@ -102,6 +104,8 @@ def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, pat
     reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
     act = jax.jit(policy)
     model, data = env.mj_model, mujoco.MjData(env.mj_model)
+    shown = mujoco.MjvOption()
+    shown.geomgroup[MARKER_GROUP] = 1
     scale = max(1, height // env.observation_spec.image_shape[0])
     frames = 0
 
@@ -109,7 +113,7 @@ def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, pat
         for name in ("qpos", "qvel", "mocap_pos", "mocap_quat"):
             getattr(data, name)[:] = np.asarray(getattr(state.data, name)[0])
         mujoco.mj_forward(model, data)
-        renderer.update_scene(data, camera=env.camera_name)
+        renderer.update_scene(data, camera=env.camera_name, scene_option=shown)
         view = np.asarray(state.obs["image"][0]).repeat(scale, 0).repeat(scale, 1)
         view = np.pad(np.repeat(view, 3, axis=2), ((0, height - view.shape[0]), (0, 0), (0, 0)))
         return np.concatenate([renderer.render(), view], axis=1)

@@ -182,7 +182,8 @@ def physics_today(envs: Iterable[str]) -> dict[str, str | None]:
 
 def other_physics(config: dict, today: str | None) -> str | None:
     """Why a run (its config.json) is not on the physics `today`: "trained on other physics" when it records
-    fingerprints (`Env.physics_id`, `report.physics_of`) other than `today` alone (a run resumed after a model
+    fingerprints (`Env.physics_id`, of the whole model: its camera's pose, field of view and drawn geoms too, so a
+    run made with another camera counts; `report.physics_of`) other than `today` alone (a run resumed after a model
     change records both), "physics not recorded" when it records none (runs older than that record); None
     when it is on today's, or `today` is None (an env no longer registered: nothing to compare)."""
     recorded = report.physics_of(config)

@@ -37,8 +37,8 @@ DOC = os.path.join("docs", "results.md")
 PARTS = ("Performance", "Learning (paper Fig. 4)", "Noise (paper Table II)", "Transfer (paper Fig. 6)",
          "Reliability")
 # the folders of results/ in the order of their sections; each is linked from its sections
-FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "ladder",
-           "noise", "noise_probe", "transfer", "reliability")
+FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "camera",
+           "ladder", "noise", "noise_probe", "transfer", "reliability")
 FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
 LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
 ENGINES = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}

@@ -1,6 +1,6 @@
 """Scripted NICOL episodes sorted into the phases of the task: what the camera probes look at.
 
-The visibility probe (`experiments.probes.visibility`) counts the pixels the cube, the goal marker and
+The visibility probe (`experiments.probes.visibility`) counts the pixels the cube and
 the hand cover, and the vision probe (`experiments.probes.vision --phase`) trains on the frames, of the
 states a NICOL task passes through. They come from scripted episodes with Gaussian action noise, in
 turn the grasp controller (`experiments.probes.grasping`), a push (`push_policy`) and the grasp

@@ -5,10 +5,10 @@ probe counts, from the camera's per-ray geom ids (`Camera.geom_map`, the first g
 how many output pixels each task-relevant body covers (rays on the body over rays per pixel, so a
 body seen by half the rays of 6 pixels covers 3) in the states a task passes through:
 
-- NICOL (nicol_slide, nicol_lift): the cube, the goal marker and the hand (palm, fingers, thumb),
-  in the scripted episodes of `experiments.probes.phases` (grasps, pushes and carries from the held
-  start), sorted by the true state into `start`, `approach`, `contact` (the hand at the cube) and
-  `held` (the cube lifted in the closed hand).
+- NICOL (nicol_slide, nicol_lift): the cube and the hand (palm, fingers, thumb; the agents' frames do not
+  draw the goal marker: docs/tasks.md, "camera"), in the scripted episodes of `experiments.probes.phases`
+  (grasps, pushes and carries from the held start), sorted by the true state into `start`, `approach`,
+  `contact` (the hand at the cube) and `held` (the cube lifted in the closed hand).
 - reaching (planar_reach, ur5_reach): the arm's links and the goal marker(s), at start states and
   after random actions.
 
@@ -52,11 +52,10 @@ def subtree_geoms(mj_model: mujoco.MjModel, body: str) -> tuple[int, ...]:
 
 
 def body_groups(env: Env) -> dict[str, tuple[int, ...]]:
-    """The task-relevant bodies of `env` as named groups of geom ids."""
+    """The task-relevant bodies of `env` that its camera draws, as named groups of geom ids."""
     m = env.mj_model
     if isinstance(env, NicolEnv):
-        return {"cube": subtree_geoms(m, "cube"), "goal marker": subtree_geoms(m, "goal"),
-                "hand": subtree_geoms(m, "r_hand")}
+        return {"cube": subtree_geoms(m, "cube"), "hand": subtree_geoms(m, "r_hand")}
     names = [m.geom(g).name for g in range(m.ngeom)]
     goals = tuple(g for g, n in enumerate(names) if n.startswith("goal") or n == "target")
     # a link's geoms the camera does not draw (e.g. ur5_reach's physical capsules in group 3) are not looked for
@@ -126,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.episodes < 1:
         return cli.exit_code(ConfigError(f"--episodes {args.episodes}: must be at least 1"))
-    text = measure(envs_mjx.make(args.env), args.episodes, args.noise, args.seed)
+    # the probe casts its own rays (`coverage`); the env need not render its observations too
+    text = measure(envs_mjx.make(args.env, render=False), args.episodes, args.noise, args.seed)
     print(text)
     if args.out:
         with open(args.out, "a") as f:
