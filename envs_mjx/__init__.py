@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import ctypes.util
 import importlib
+import importlib.abc
 import importlib.metadata
 import importlib.util
 import io
@@ -40,12 +41,45 @@ _HEADLESS = sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") 
 if _HEADLESS and "mujoco" not in sys.modules and ctypes.util.find_library("EGL"):
     os.environ.setdefault("MUJOCO_GL", "egl")
 
-# mujoco.mjx tries its optional Warp backend on import and prints "Failed to import warp: No
-# module named 'warp'" and the same for mujoco_warp when Warp is absent, which is expected:
-# these envs run on MJX's JAX backend. Exactly those two lines are dropped.
+class _WithoutWarp(importlib.abc.MetaPathFinder):
+    """An import hook that finds no `warp` package (warp-lang), as if it were not installed."""
+
+    def find_spec(self, name: str, path: Any = None, target: Any = None) -> None:
+        if name == "warp" or name.startswith("warp."):
+            raise ModuleNotFoundError("No module named 'warp'", name="warp")
+
+
+# mujoco.mjx imports its optional MuJoCo Warp backend on import, which costs seconds where warp-lang is installed
+# (CUDA's start-up) though most runs step MJX's JAX physics: it is imported here without warp-lang, and
+# `enable_warp` imports Warp when an env first steps on it (`Env.use_backend`). mujoco.mjx then prints "Failed to
+# import warp: No module named 'warp'" and the same for mujoco_warp, which is expected: exactly those two lines are
+# dropped.
 _WARP_ABSENT = re.compile(r"Failed to import (warp|mujoco_warp): No module named 'warp'")
 if "mujoco.mjx" not in sys.modules:
-    _import_without("mujoco.mjx", _WARP_ABSENT)
+    _HOOKS = [] if "warp" in sys.modules else [_WithoutWarp()]
+    sys.meta_path[:0] = _HOOKS
+    try:
+        _import_without("mujoco.mjx", _WARP_ABSENT)
+    finally:
+        for _hook in _HOOKS:
+            sys.meta_path.remove(_hook)
+
+
+def enable_warp() -> None:
+    """Give mujoco.mjx its MuJoCo Warp backend, which it was imported without (above): import warp-lang, then run
+    again the import-time code of the mujoco.mjx modules that bind Warp's names on import (its `warp` package, the
+    types of its Warp data and its io module; reloaded in place, so that the functions mujoco.mjx exports see the
+    new names). ImportError where warp-lang is not installed."""
+    import mujoco.mjx.warp as mjx_warp
+
+    if mjx_warp.WARP_INSTALLED:
+        return
+    import warp  # noqa: F401 - an ImportError here, not a message printed by mujoco.mjx
+    from mujoco.mjx._src import io as mjx_io
+    from mujoco.mjx.warp import types as mjx_warp_types
+
+    for module in (mjx_warp_types, mjx_warp, mjx_io):
+        importlib.reload(module)
 
 from envs_mjx.base import Env, ObservationSpec, State  # noqa: E402 - after the quiet mjx import above
 

@@ -226,6 +226,9 @@ class Env(abc.ABC):
         if backend == "jax":
             self._put_jax()
         elif backend == "warp":
+            from envs_mjx import enable_warp
+
+            enable_warp()
             from mujoco.mjx.third_party.mujoco_warp import OverflowType
 
             model = mjx.put_model(self.mj_model, impl="warp")

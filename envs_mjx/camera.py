@@ -13,9 +13,17 @@ intersection functions and geoms; tests/envs_mjx/test_camera.py compares them), 
   fixed: its body and every ancestor have no joints and are not mocap bodies;
 - geoms fixed to the world (table, floor, static links) are cast once at construction into
   a static depth and gray image;
-- each moving geom is then cast against all rays and merged into a running nearest hit,
-  one geom after another, in element-wise arithmetic that XLA fuses (no per-geom matrix
-  products, no [rays × geoms] arrays and arg-min as in `mjx.ray`).
+- each moving geom is then cast and merged into a running nearest hit, one geom after another,
+  in element-wise arithmetic that XLA fuses (no per-geom matrix products, no [rays × geoms]
+  arrays and arg-min as in `mjx.ray`);
+- culling: a moving geom is cast only against a square window of rays (`Camera.windows`, a
+  static size per geom, placed where the screen-space bounding box of its bounding sphere
+  falls), as no ray outside that box can hit it. Window sizes are static (jit) and chosen at
+  construction from sampled poses; a geom whose box does not fit its window (too close to the
+  camera) is detected exactly, and a batch of envs in which any does is cast in full instead
+  (`jax.custom_batching.custom_vmap` decides once per batch, so vmapped envs do not pay for
+  both). The frame is the same, ray for ray, as casting every ray
+  (tests/envs_mjx/test_camera.py).
 
 Only geoms of groups 0–2 (MuJoCo's visible groups) with nonzero alpha are seen, as with
 `mjx.ray(geomgroup=VISIBLE_GROUPS)`; put collision-only geoms in group 3+. Like `mjx.ray`,
@@ -24,10 +32,13 @@ it cannot draw cylinders, height fields or meshes; a visible one is refused.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.custom_batching import custom_vmap
 from mujoco import mjx
 from mujoco.mjx._src import ray as mjx_ray  # mjx.ray's per-type intersection functions
 
@@ -93,6 +104,63 @@ def area_average(gray: jax.Array, factor: int) -> jax.Array:
 
 
 BACKGROUND = -1  # the geom id of a ray that hits nothing
+WINDOW_MARGIN = 1  # rays added on each side of a bounding box, against rounding at a geom's silhouette
+POSE_SAMPLES = 256  # random joint poses that size the windows at construction
+WINDOW_SLACK = 1.25  # window side over the largest box seen in those poses
+
+
+def sphere_ray_box(centre: jax.Array, radius: float, tan_half_fovy: float, rays_per_side: int
+                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The rays that can hit a sphere of `radius` at `centre` (camera frame: x right, y up, looking along -z).
+
+    Returns (lo, hi, seen): int32 [2] first and last (row, col) ray index of the sphere's screen-space bounding box
+    (unclipped; `WINDOW_MARGIN` wider on each side) and whether that box is exact, i.e. the sphere lies wholly
+    in front of the camera; a sphere wholly behind it is hit by no ray (lo > hi), one that straddles the camera's
+    plane has no finite box (seen False). The box's edges are the planes through the camera and a frame axis that
+    touch the sphere: angles φ ± asin(r/ρ) in each of the xz and yz planes."""
+    x, y, depth = centre[0], centre[1], -centre[2]
+    guard = radius * (1.0 + 1e-4) + 1e-6
+    scale = rays_per_side / 2.0
+
+    def tangents(a):  # tangents a/depth of the two planes through the camera that touch the sphere
+        phi = jnp.arctan2(a, depth)
+        beta = jnp.arcsin(jnp.minimum(radius / jnp.maximum(jnp.hypot(a, depth), guard), 1.0))
+        return jnp.tan(jnp.clip(phi - beta, -1.5, 1.5)), jnp.tan(jnp.clip(phi + beta, -1.5, 1.5))
+
+    def index(c):  # ray index of a coordinate c in [-1, 1] across the frame, clipped to just outside it
+        return jnp.clip((c + 1.0) * scale - 0.5, -1.0 - WINDOW_MARGIN, rays_per_side + WINDOW_MARGIN)
+
+    (u_lo, u_hi), (v_lo, v_hi) = tangents(x), tangents(y)
+    t = tan_half_fovy
+    lo = jnp.ceil(jnp.stack([index(-v_hi / t), index(u_lo / t)])).astype(jnp.int32) - WINDOW_MARGIN
+    hi = jnp.floor(jnp.stack([index(-v_lo / t), index(u_hi / t)])).astype(jnp.int32) + WINDOW_MARGIN
+    behind = depth < -guard
+    return jnp.where(behind, rays_per_side, lo), jnp.where(behind, -1, hi), (depth > guard) | behind
+
+
+def window_start(lo: jax.Array, hi: jax.Array, size: int, rays_per_side: int) -> tuple[jax.Array, jax.Array]:
+    """Where a `size`² window of the ray grid covering the box [lo, hi] (`sphere_ray_box`) starts, and whether it
+    covers the box's part inside the frame."""
+    first, last = jnp.clip(lo, 0, rays_per_side - 1), jnp.clip(hi, 0, rays_per_side - 1)
+    start = jnp.clip(first, 0, rays_per_side - size)
+    return start, jnp.all((last - start < size) | (hi < lo))
+
+
+def _sampled_poses(mj_model: mujoco.MjModel, samples: int, seed: int = 0) -> list[np.ndarray]:
+    """qpos0, the keyframes and `samples` random poses: each hinge and slide joint uniform over its range (hinges
+    without one over a turn), ball and free joints as in qpos0."""
+    rng = np.random.default_rng(seed)
+    poses = [mj_model.qpos0.copy(), *(mj_model.key_qpos[k].copy() for k in range(mj_model.nkey))]
+    movable = [j for j in range(mj_model.njnt) if mj_model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE,
+                                                                           mujoco.mjtJoint.mjJNT_SLIDE)]
+    for _ in range(samples):
+        qpos = mj_model.qpos0.copy()
+        for j in movable:
+            lo, hi = mj_model.jnt_range[j] if mj_model.jnt_limited[j] else (-np.pi, np.pi)
+            if mj_model.jnt_limited[j] or mj_model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+                qpos[mj_model.jnt_qposadr[j]] = rng.uniform(lo, hi)
+        poses.append(qpos)
+    return poses
 
 
 class Camera:
@@ -105,6 +173,10 @@ class Camera:
       background: gray level of pixels whose ray hits nothing.
       supersample: rays per pixel along each axis; the frame is cast at `resolution · supersample`
         rays a side and area-averaged down (1: one ray per pixel, the frame `mjx.ray` sees).
+
+    `windows` holds, per moving geom, the side of the square window of rays it is cast against (None: all rays;
+    planes, and geoms whose sampled boxes nearly fill the frame). Any size gives the same frame: a smaller one
+    only makes the all-rays fallback more frequent.
     """
 
     def __init__(self, mj_model: mujoco.MjModel, camera_name: str, resolution: int, background: int = 0,
@@ -143,16 +215,80 @@ class Camera:
                        jnp.asarray(data.geom_xmat[g].reshape(3, 3), jnp.float32))
             dist, ids = nearest(dist, ids, hit, g)
         self.static_dist, self.static_ids = np.asarray(dist), np.asarray(ids)
+        self.rbound = np.array([mj_model.geom_rbound[g] for g, _ in self.moving_geoms], np.float32)
+        self.windows = self._window_sizes(mj_model)
+        self._culled_map = _per_batch(self._windowed_map, self._full_map)
 
-    def geom_map(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
-        """The id of the first geom each ray hits (`BACKGROUND` where none), int32 [rays_per_side, rays_per_side],
-        for the scene of `data` (positions must be current): what `mjx.ray` returns per ray."""
+    def _camera_frame(self, xpos: jax.Array) -> jax.Array:
+        """World points [..., 3] in the camera frame."""
+        return (xpos - self.position) @ jnp.asarray(self.rotation, jnp.float32)
+
+    def _window_sizes(self, mj_model: mujoco.MjModel) -> tuple[int | None, ...]:
+        """Each moving geom's window side: `WINDOW_SLACK` times the largest in-frame box of its bounding sphere over
+        `_sampled_poses`, or None where that nears the frame (or the geom is a plane, whose rbound is 0)."""
+        data, centres = mujoco.MjData(mj_model), []
+        ids = [g for g, _ in self.moving_geoms]
+        for qpos in _sampled_poses(mj_model, POSE_SAMPLES):
+            data.qpos[:] = qpos
+            mujoco.mj_kinematics(mj_model, data)
+            centres.append(np.asarray(self._camera_frame(data.geom_xpos[ids].astype(np.float32))))
+        n = self.rays_per_side
+        lo, hi, seen = (np.asarray(a) for a in sphere_ray_box(np.moveaxis(np.array(centres), -1, 0), self.rbound,
+                                                               self.tan_half_fovy, n))
+        extent = np.clip(hi, 0, n - 1) - np.clip(lo, 0, n - 1) + 1  # [2, poses, geoms]
+        need = np.where(seen & (hi >= lo), extent, 0).max(axis=(0, 1))
+        sides = np.ceil(WINDOW_SLACK * need).astype(int) + 2
+        planes = np.array([t == mujoco.mjtGeom.mjGEOM_PLANE for _, t in self.moving_geoms], bool)
+        return tuple(None if plane or side >= n else int(side) for side, plane in zip(sides, planes))
+
+    def _full_map(self, size: jax.Array, xpos: jax.Array, xmat: jax.Array) -> jax.Array:
+        """The moving geoms (size, xpos, xmat stacked in `moving_geoms` order) cast against every ray and merged
+        into the static image: int32 [rays_per_side²] of first-hit geom ids."""
         dirs, origin = jnp.asarray(self.directions), jnp.asarray(self.position)
         dist, ids = jnp.asarray(self.static_dist), jnp.asarray(self.static_ids)
-        for g, geom_type in self.moving_geoms:
-            hit = cast(dirs, origin, geom_type, mjx_model.geom_size[g], data.geom_xpos[g], data.geom_xmat[g])
-            dist, ids = nearest(dist, ids, hit, g)
-        return ids.reshape(self.rays_per_side, self.rays_per_side)
+        for k, (g, geom_type) in enumerate(self.moving_geoms):
+            dist, ids = nearest(dist, ids, cast(dirs, origin, geom_type, size[k], xpos[k], xmat[k]), g)
+        return ids
+
+    def _windowed_map(self, size: jax.Array, xpos: jax.Array, xmat: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """`_full_map` with each geom cast against its window of rays only; also whether every geom's bounding box
+        fitted its window (else the map may miss part of a geom)."""
+        n, origin = self.rays_per_side, jnp.asarray(self.position)
+        dirs = jnp.asarray(self.directions).reshape(n, n, 3)
+        dist, ids = jnp.asarray(self.static_dist).reshape(n, n), jnp.asarray(self.static_ids).reshape(n, n)
+        centres, fits = self._camera_frame(xpos), []
+        for k, ((g, geom_type), side) in enumerate(zip(self.moving_geoms, self.windows)):
+            if side is None:
+                hit = cast(dirs.reshape(-1, 3), origin, geom_type, size[k], xpos[k], xmat[k]).reshape(n, n)
+                dist, ids = nearest(dist, ids, hit, g)
+                continue
+            lo, hi, seen = sphere_ray_box(centres[k], self.rbound[k], self.tan_half_fovy, n)
+            start, covered = window_start(lo, hi, side, n)
+            fits.append(seen & covered)
+            rays = jax.lax.dynamic_slice(dirs, (start[0], start[1], 0), (side, side, 3)).reshape(-1, 3)
+            hit = cast(rays, origin, geom_type, size[k], xpos[k], xmat[k]).reshape(side, side)
+            near = nearest(jax.lax.dynamic_slice(dist, start, (side, side)),
+                           jax.lax.dynamic_slice(ids, start, (side, side)), hit, g)
+            dist, ids = (jax.lax.dynamic_update_slice(a, b, start) for a, b in zip((dist, ids), near))
+        return ids.reshape(-1), jnp.all(jnp.array(fits, bool))
+
+    def geom_map(self, mjx_model: mjx.Model, data: mjx.Data, cull: bool = True) -> jax.Array:
+        """The id of the first geom each ray hits (`BACKGROUND` where none), int32 [rays_per_side, rays_per_side],
+        for the scene of `data` (positions must be current): what `mjx.ray` returns per ray. `cull` False casts
+        every geom against every ray (the same map, slower: the reference the culling is tested against)."""
+        args = self._moving(mjx_model, data)
+        flat = self._culled_map(*args) if cull else self._full_map(*args)
+        return flat.reshape(self.rays_per_side, self.rays_per_side)
+
+    def fits_windows(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
+        """Whether every moving geom's bounding box fits its window in the scene of `data` (if not, a batch holding
+        this scene is cast against every ray)."""
+        return self._windowed_map(*self._moving(mjx_model, data))[1]
+
+    def _moving(self, mjx_model: mjx.Model, data: mjx.Data) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Size, position and orientation of the moving geoms, in `moving_geoms` order."""
+        ids = np.array([g for g, _ in self.moving_geoms], np.int32)
+        return mjx_model.geom_size[ids], data.geom_xpos[ids], data.geom_xmat[ids]
 
     def render(self, mjx_model: mjx.Model, data: mjx.Data) -> jax.Array:
         """Render the scene of `data` (positions must be current) as uint8 [H, W, 1]: each ray's gray level,
@@ -169,3 +305,33 @@ class Camera:
         v = -local[1] / (-local[2]) / self.tan_half_fovy
         half = self.resolution / 2.0  # in output pixels
         return (v + 1.0) * half, (u + 1.0) * half
+
+
+def _per_batch(windowed: Callable, full: Callable) -> Callable:
+    """A geom map of one scene from `windowed` (→ map, fits) that falls back to `full` (→ map) where a geom did not
+    fit its window, decided once per batch under vmap: `lax.cond` on a vmapped predicate would run both branches
+    for every scene, so the vmap rule maps `windowed` over the whole batch (nested vmaps flattened into one axis)
+    and casts the batch in full only if any scene of it needs that."""
+
+    def batched(axis_size, in_batched, args):  # every argument with the vmapped axis leading
+        return [a if b else jnp.broadcast_to(a, (axis_size, *a.shape)) for a, b in zip(args, in_batched)]
+
+    @custom_vmap
+    def batch_map(*args):  # each argument with a leading axis of scenes
+        maps, fits = jax.vmap(windowed)(*args)
+        return jax.lax.cond(jnp.all(fits), lambda: maps, lambda: jax.vmap(full)(*args))
+
+    @batch_map.def_vmap
+    def _(axis_size, in_batched, *args):
+        maps = batch_map(*(a.reshape(-1, *a.shape[2:]) for a in batched(axis_size, in_batched, args)))
+        return maps.reshape(axis_size, -1, *maps.shape[1:]), True
+
+    @custom_vmap
+    def one_map(*args):
+        return batch_map(*(a[None] for a in args))[0]
+
+    @one_map.def_vmap
+    def _(axis_size, in_batched, *args):
+        return batch_map(*batched(axis_size, in_batched, args)), True
+
+    return one_map

@@ -118,3 +118,19 @@ def test_a_visible_cylinder_is_refused_with_a_clear_error():
     )
     with pytest.raises(ValueError, match="geom 0 is a visible mjGEOM_CYLINDER"):
         Camera(model, "c", 8)
+
+
+def test_a_geom_too_large_for_its_window_falls_back_to_every_ray():
+    """Windows too small for the scene (one ray) are detected and the whole batch is cast in full: the same frames,
+    vmapped and not."""
+    env = envs_mjx.make("planar_reach")
+    cam, model = env.camera, env.mjx_model
+    small = Camera(env.mj_model, env.camera_name, cam.resolution, supersample=cam.supersample)
+    small.windows = tuple(None if side is None else 1 for side in cam.windows)
+    data = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(0), 4)).data
+    fits = jax.vmap(lambda d: small.fits_windows(model, d))(data)
+    assert not np.asarray(fits).any()
+    reference = jax.jit(jax.vmap(lambda d: cam.geom_map(model, d, cull=False)))(data)
+    np.testing.assert_array_equal(jax.jit(jax.vmap(lambda d: small.geom_map(model, d)))(data), reference)
+    one = jax.tree.map(lambda x: x[0], data)
+    np.testing.assert_array_equal(jax.jit(lambda d: small.geom_map(model, d))(one), reference[0])

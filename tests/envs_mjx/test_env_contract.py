@@ -10,6 +10,7 @@ import pytest
 
 import envs_mjx
 from bidal_jax import acting
+from envs_mjx.camera import cast
 
 # nicol_lift_reduced is nicol_lift with proprio segments dropped, and the ladder's nicol_slide_ee and
 # nicol_slide_ee_obj are nicol_slide with only some kept: test_nicol.py checks them against nicol_lift and
@@ -43,6 +44,9 @@ def compiled(name):
                 step.next_state.obs["proprio"],
                 step.next_state.data.qpos,
                 step.next_state.obs["achieved_goal"],
+                step.next_state.obs["image"],
+                step.next_state.data.geom_xpos,
+                step.next_state.data.geom_xmat,
             ),
         )
 
@@ -71,15 +75,53 @@ def test_reset_and_step_match_the_spec(name):
 
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_no_nan_over_a_thousand_random_steps_and_deterministic(name):
-    _, (proprio, qpos, ag) = rollout(name, 1)
+    _, (proprio, qpos, ag, *_) = rollout(name, 1)
     assert np.isfinite(np.asarray(proprio)).all()
     assert np.isfinite(np.asarray(qpos)).all()
     assert np.isfinite(np.asarray(ag)).all()
     env, resets, random_rollout = compiled(name)
-    _, (proprio2, _, _) = random_rollout(resets, jax.random.PRNGKey(1))
+    _, (proprio2, *_) = random_rollout(resets, jax.random.PRNGKey(1))
     np.testing.assert_array_equal(np.asarray(proprio), np.asarray(proprio2))
-    _, (proprio3, _, _) = rollout(name, 2)
+    _, (proprio3, *_) = rollout(name, 2)
     assert not np.array_equal(np.asarray(proprio), np.asarray(proprio3))
+
+
+@pytest.mark.parametrize("name", ENV_NAMES)
+def test_culled_camera_frames_are_those_of_casting_every_ray(name):
+    """The camera's culling (each moving geom cast against its window of rays, envs_mjx/camera.py) gives the geom
+    maps and frames of casting every geom against every ray over the random rollout's scenes, bit for bit except at
+    ties: a ray that hits two geoms at the same distance up to rounding (overlapping links at a joint), which XLA's
+    CPU code for a window and for the whole frame may round apart. The culling is in force: nearly every scene fits
+    its windows (the rest, cast in full, are compared too), and the frames the rollout rendered are culled ones.
+    Generic: the windows come from the model, whatever its camera pose."""
+    env, _, _ = compiled(name)
+    cam = env.camera
+    _, (*_, images, xpos, xmat) = rollout(name, 1)
+    images, xpos, xmat = (x[::10].reshape(-1, *x.shape[2:]) for x in (images, xpos, xmat))  # 100 scenes
+    assert any(side is not None for side in cam.windows), cam.windows
+
+    @jax.jit
+    def maps(xpos, xmat):
+        scenes = jax.vmap(lambda p, m: env.blank_data().replace(geom_xpos=p, geom_xmat=m))(xpos, xmat)
+        full = jax.vmap(lambda d: (cam.geom_map(env.mjx_model, d, cull=False), cam.render(env.mjx_model, d)))
+        # one scene at a time: each keeps its windows unless it itself does not fit them
+        culled = jax.lax.map(lambda d: (cam.geom_map(env.mjx_model, d), cam.fits_windows(env.mjx_model, d)), scenes)
+        return *full(scenes), *culled
+
+    full_ids, full_images, ids, fits = (np.asarray(x) for x in maps(xpos, xmat))
+    assert fits.mean() >= 0.9, fits.mean()
+    assert len(np.unique(full_ids)) >= 3  # the scene is seen, not a blank frame
+    ties = np.argwhere(ids != full_ids)
+    assert len(ties) <= 1e-4 * ids.size, len(ties)
+    for scene, row, col in ties:  # each a tie of two geoms, not a geom the culling missed
+        a, b = full_ids[scene, row, col], ids[scene, row, col]
+        assert a >= 0 and b >= 0, (a, b)
+        ray = cam.directions[row * cam.rays_per_side + col][None]
+        da, db = (float(cast(ray, cam.position, int(env.mj_model.geom_type[g]), env.mj_model.geom_size[g],
+                             xpos[scene, g], xmat[scene, g])[0]) for g in (a, b))
+        assert abs(da - db) <= 1e-5 * da, (a, b, da, db)
+    # the rollout's frames (culled, vmapped over its envs): the same up to the pixels of such ties
+    assert (np.asarray(images) != full_images).mean() <= 1e-4
 
 
 @pytest.mark.parametrize("name", ENV_NAMES)

@@ -1,0 +1,97 @@
+"""The vision branch alone against its floor: forward and backward passes of an update's frames, per conv_impl.
+
+    python -m experiments.bench.encoder                                  # patch, banded, toeplitz; bfloat16
+    python -m experiments.bench.encoder --impls toeplitz --seeds 5 --frames 4096 --dtype bfloat16
+
+Times, for `--seeds` vmapped seeds, the vision branch (`bidal_jax.networks.VisionBranch`: the four 3×3 convs with
+ELU and the dense layer) of `--frames` frames per seed, forward and backward (the gradients of its weights and
+biases: frames are data, so the first layer's input gradient is not asked for), in one jitted call: an update's
+encoder work. Each figure is the median of `--repeats` warm calls. Beside it, the floor of that work on an H100
+(989 TFLOP/s bf16 dense, 3.35 TB/s): the branch's useful FLOPs (forward 2·k²·C·F per output of each conv and
+2·in·out for the dense layer; backward as much again for the weight gradients and once more for the input gradients
+of every layer but the first) and the bytes a fused kernel cannot avoid (each uint8 frame read once, the bf16
+features written and their gradient read), and the measured time over the larger of the two.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from bidal_jax.config import CONV_IMPLS, NetworkConfig
+from bidal_jax.networks import VisionBranch, _same_pads, parse_strides
+from experiments.bench.programs import timed
+
+PEAK_FLOPS, PEAK_BYTES = 989e12, 3.35e12  # one H100 SXM: bf16 dense tensor-core FLOP/s, HBM3 bytes/s
+FRAME = (42, 42, 1)
+
+
+def branch_flops(strides: tuple[int, ...], channels: int, features: int, k: int = 3) -> tuple[float, float]:
+    """Useful FLOPs of one frame through the vision branch (four convs, then the dense layer): (forward, backward);
+    backward = weight gradients of every layer + input gradients of all but the first."""
+    size, c_in, forward = FRAME[0], FRAME[2], []
+    for layer, stride in enumerate(strides):
+        pads = (0, 0, 0, 0) if layer == 0 else _same_pads(size, size, k, stride)
+        size = (size + pads[0] + pads[1] - k) // stride + 1
+        forward.append(2.0 * k * k * c_in * channels * size * size)
+        c_in = channels
+    forward.append(2.0 * size * size * channels * features)
+    return sum(forward), sum(forward) + sum(forward[1:])
+
+
+def floor_seconds(frames: int, strides: tuple[int, ...], channels: int, features: int) -> dict[str, float]:
+    """The floor of forward + backward of `frames` frames: compute, memory and their larger."""
+    forward, backward = branch_flops(strides, channels, features)
+    flops = frames * (forward + backward)
+    bytes_ = frames * (np.prod(FRAME) + 2 * 2 * features)
+    return {"gflop": flops / 1e9, "mb": bytes_ / 1e6, "compute_s": flops / PEAK_FLOPS, "memory_s": bytes_ / PEAK_BYTES,
+            "floor_s": max(flops / PEAK_FLOPS, bytes_ / PEAK_BYTES)}
+
+
+def encoder_step(impl: str, dtype: str, seeds: int, frames: int):
+    """A jitted forward + backward of the vision branch over `frames` frames of each of `seeds` seeds, and its
+    inputs (random weights and frames)."""
+    net = NetworkConfig(conv_impl=impl, vision_dtype=dtype)
+    branch = VisionBranch(net.conv_channels, net.vision_features, parse_strides(net.conv_strides), impl=impl,
+                          dtype=jnp.dtype(dtype))
+    keys = jax.random.split(jax.random.PRNGKey(0), seeds)
+    images = jax.random.randint(jax.random.PRNGKey(1), (seeds, frames, *FRAME), 0, 256).astype(jnp.uint8)
+    params = jax.vmap(lambda key: branch.init(key, images[0, :1]))(keys)
+
+    def loss(p, x):
+        return jnp.sum(branch.apply(p, x))
+
+    step = jax.jit(jax.vmap(jax.grad(loss)))
+    return step, params, images
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--impls", nargs="+", default=list(CONV_IMPLS), choices=CONV_IMPLS)
+    parser.add_argument("--dtype", default="bfloat16", choices=("float32", "bfloat16"))
+    parser.add_argument("--seeds", type=int, default=5)
+    parser.add_argument("--frames", type=int, default=4096,
+                        help="frames per seed through forward and backward (a batch of 2,048: obs and next obs)")
+    parser.add_argument("--repeats", type=int, default=20)
+    args = parser.parse_args(argv)
+    net = NetworkConfig()
+    floor = floor_seconds(args.seeds * args.frames, parse_strides(net.conv_strides), net.conv_channels,
+                          net.vision_features)
+    print(f"device: {jax.devices()[0].device_kind}; {args.seeds} seeds × {args.frames} frames, {args.dtype}")
+    print(f"floor (H100): {floor['gflop']:.1f} GFLOP → {floor['compute_s'] * 1e6:.1f} µs; {floor['mb']:.1f} MB → "
+          f"{floor['memory_s'] * 1e6:.1f} µs; floor {floor['floor_s'] * 1e6:.1f} µs")
+    print("| conv_impl | compile s | ms per call | × floor |")
+    print("| --- | --- | --- | --- |")
+    for impl in args.impls:
+        step, params, images = encoder_step(impl, args.dtype, args.seeds, args.frames)
+        times = timed(lambda: jax.block_until_ready(step(params, images)), args.repeats)
+        print(f"| {impl} | {times['first_call_seconds']:.1f} | {times['warm_seconds'] * 1e3:.3f} | "
+              f"{times['warm_seconds'] / floor['floor_s']:.0f} |")
+
+
+if __name__ == "__main__":
+    main()
