@@ -31,6 +31,9 @@ XLA_FLAGS_BY_JAXLIB = {
     "0.10": (("--xla_cpu_use_fusion_emitters=false", "--xla_cpu_enable_concurrency_optimized_scheduler=false"),
              ("--xla_backend_optimization_level=1",)),
 }
+# the environment this process started with, before `start_process`: what a command hands to a run of another
+# checkout, which sets up its own process (experiments.bench.success)
+CALLER_ENVIRONMENT = dict(os.environ)
 # mujoco.mjx tries its optional Warp backend on import and prints these when Warp is absent, which is expected
 # where the envs run on MJX's JAX backend
 WARP_ABSENT = re.compile(r"Failed to import (warp|mujoco_warp): No module named 'warp'")
