@@ -39,8 +39,9 @@ def test_cli_writes_the_png_and_the_plotted_numbers(two_runs, tmp_path, capsys):
 
 
 def test_out_names_the_figure_and_its_numbers_go_beside_it(two_runs, tmp_path):
-    assert plot.main([two_runs[1], "--out", str(tmp_path / "fig.png")]) == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.csv", "fig.png"]
+    (tmp_path / "figures").mkdir()
+    assert plot.main([two_runs[1], "--out", str(tmp_path / "figures" / "fig.png")]) == 0
+    assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == ["fig.csv", "fig.png"]
 
 
 def test_x_axis_epoch(two_runs, tmp_path):
