@@ -306,6 +306,8 @@ ENV_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     **{name: merged(gpu_preset(25, 2048, 2, 3200), {"train": {"exploration_starts": LIFT_HELD_STARTS}})
        for name in ("nicol_lift", "nicol_lift_reduced")},
 }
+# the pixel agents' ladder's variants of nicol_slide (envs_mjx.nicol.NicolSlideKept): its task, so its preset
+ENV_PRESETS.update(dict.fromkeys(("nicol_slide_ee", "nicol_slide_ee_obj"), ENV_PRESETS["nicol_slide"]))
 # Per-agent overrides of the env presets, for agents that learn from images.
 IMAGE_AGENT_PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "planar_reach": {"run": {"epochs": 20}},

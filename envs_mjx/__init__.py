@@ -23,6 +23,8 @@ _REGISTRY: dict[str, str] = {
     "nicol_slide": "envs_mjx.nicol:NicolSlide",
     "nicol_lift": "envs_mjx.nicol:NicolLift",
     "nicol_lift_reduced": "envs_mjx.nicol:NicolLiftReduced",
+    "nicol_slide_ee": "envs_mjx.nicol:NicolSlideEE",
+    "nicol_slide_ee_obj": "envs_mjx.nicol:NicolSlideEEObj",
 }
 
 

@@ -55,6 +55,10 @@ front of the hand's rest position.
   HER paper's pick-and-place aid, a labelled variant: the trainer's `exploration_starts`).
 - nicol_lift_reduced (`NicolLiftReduced`): lift without obj_rot, obj_velp, obj_velr and
   obj_rel_pos (D = 28), for the transfer experiment (paper Sec. IV-C).
+- nicol_slide_ee (`NicolSlideEE`, D = 3: `ee_pos`) and nicol_slide_ee_obj (`NicolSlideEEObj`, D = 6: `ee_pos`,
+  `obj_pos`): slide whose proprio keeps only those segments (`NicolSlideKept`), the rungs of the pixel agents'
+  ladder (`experiments.paper.ladder`): the image plus the hand's position, then plus the cube's. Labelled
+  variants, no paper tasks.
 """
 
 from __future__ import annotations
@@ -442,3 +446,33 @@ class NicolLiftReduced(NicolLift):
     def __init__(self, render: bool = True, air_goal_probability: float = AIR_GOAL_PROBABILITY):
         super().__init__(render=render, air_goal_probability=air_goal_probability)
         self.observation_spec = self.observation_spec.without(REDUCED_DROP)
+
+
+class NicolSlideKept(NicolSlide):
+    """nicol_slide whose proprio keeps only the segments named in `keep`, in `PROPRIO_SEGMENTS` order (a labelled
+    variant: the rungs of `experiments.paper.ladder`). The same task, step and camera; observations are built from
+    the spec's segment names, so the other segments are never observed."""
+
+    keep: tuple[str, ...] = ()
+
+    def __init__(self, render: bool = True):
+        super().__init__(render=render)
+        names = self.observation_spec.segment_names
+        unknown = sorted(set(self.keep) - set(names))
+        if unknown or not self.keep:
+            raise ValueError(f"{self.name}: cannot keep {unknown or 'no segment'}; segments are {names}")
+        self.observation_spec = self.observation_spec.without(tuple(n for n in names if n not in self.keep))
+
+
+class NicolSlideEE(NicolSlideKept):
+    """nicol_slide observing, beside the image, only the hand's grasp point `ee_pos` (D = 3)."""
+
+    name = "nicol_slide_ee"
+    keep = ("ee_pos",)
+
+
+class NicolSlideEEObj(NicolSlideKept):
+    """nicol_slide observing, beside the image, only the hand's grasp point and the cube's position (D = 6)."""
+
+    name = "nicol_slide_ee_obj"
+    keep = ("ee_pos", "obj_pos")

@@ -6,9 +6,9 @@ This package is where the project's processes start: `python -m experiments.run`
 module, a grid's Ray workers import it to run a cell, and the tests import it first (tests/conftest.py).
 `start_process` sets, once, what those processes need before any of their modules imports MuJoCo or JAX starts
 a backend: the XLA:CPU flags measured for the installed jaxlib, MuJoCo's OpenGL backend on a headless machine,
-and MuJoCo MJX's import without its two lines about an absent Warp. The libraries, `envs_mjx` and `bidal_jax`,
-change nothing on import (tests/test_import_effects.py); docs/design.md ("Versions and process settings") says
-what each setting does.
+MuJoCo MJX's import without its two lines about an absent Warp, and for a command line XLA's C++ logs off. The
+libraries, `envs_mjx` and `bidal_jax`, change nothing on import (tests/test_import_effects.py); docs/design.md
+("Versions and process settings") says what each setting does.
 """
 
 from __future__ import annotations
@@ -76,6 +76,11 @@ def import_without(module: str, noise: re.Pattern) -> None:
 def start_process() -> None:
     """Set up this process for the project's programs (the module docstring); what the caller's environment sets
     already wins. Idempotent."""
+    # `python -m experiments.<command>` (Python names the module "-m" while it imports this package to find it):
+    # XLA's and absl's C++ logs (the GPU autotuner's dumps, rematerialization warnings) stay off the terminal, since
+    # every failure is one `error:` line; set before JAX loads. TF_CPP_MIN_LOG_LEVEL=0 shows them.
+    if sys.argv[:1] == ["-m"]:
+        os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
     # XLA reads XLA_FLAGS once, when its first backend starts: before anything computes
     flags = xla_flags(importlib.metadata.version("jaxlib"), gpu_plugin_installed())
     os.environ["XLA_FLAGS"] = with_flags(os.environ.get("XLA_FLAGS", ""), flags)

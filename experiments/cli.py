@@ -12,7 +12,9 @@
   wrong type, an output folder that is missing, a run directory in use, a state or epoch program
   larger than the device's memory); 3 diverged; 4 the disk (no room for a checkpoint, or a write
   failed: no space, quota, read-only file system, I/O error, permission denied); 6 the device ran out
-  of memory all the same while the program compiled or trained (the last good checkpoint is kept);
+  of memory all the same while the program compiled or trained, or XLA's GPU autotuner had no memory to try
+  its kernels in (the last good checkpoint is kept), or a GPU that other processes hold has too little free for
+  the run at its start (`memory.share_gpu`);
   130 and 143 stopped by SIGINT and SIGTERM (a checkpoint was saved). 5 is a grid's (a cell whose
   worker died more often than its retries allow: `experiments.cluster`).
 - `command(main)`: how every command's `__main__` runs its `main`: Ctrl-C where no run's stop
@@ -43,7 +45,7 @@ from bidal_jax.config import (
     option,
     resolve,
 )
-from bidal_jax.run import cachefolder, loop, preflight, transfer
+from bidal_jax.run import cachefolder, loop, memory, preflight, transfer
 from bidal_jax.run.checkpoint import CheckpointError
 from bidal_jax.run.guard import EXIT_ON_SIGNAL, Diverged, Interrupted
 from bidal_jax.run.memory import OutOfMemory
@@ -187,7 +189,9 @@ def start_run(
     `fresh_buffer` resumes with an empty replay buffer. The program compiles into the persistent cache
     (`cachefolder.enable`; a folder that cannot be written is one warning line, and the run goes on without it),
     so that a resumed or repeated run of a config skips XLA's compile, with one source location per operation
-    (`loop.short_source_locations`). Raises what `FAILURES` names."""
+    (`loop.short_source_locations`). Where other processes hold its GPU, JAX takes what is free of it
+    (`memory.share_gpu`, before JAX starts on the GPU: a no-op once it has). Raises what `FAILURES` names."""
+    memory.share_gpu()
     cachefolder.enable()  # before anything compiles: JAX reads the setting at its first compile
     loop.short_source_locations()  # before anything is lowered
     with preflight.prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make, resume=resume,

@@ -131,12 +131,15 @@ def check_options(args: argparse.Namespace) -> None:
 
 def prepare_driver(args: argparse.Namespace) -> None:
     """Before anything touches a device: with Ray asked for, check its options (`check_options`) and keep this
-    process's JAX on the CPU (it only builds envs for the plan; the GPUs are the cells'); without, nothing."""
+    process's JAX on the CPU (it only builds envs for the plan; the GPUs are the cells'); without, the runs train in
+    this process: where other processes hold its GPU, JAX takes what is free of it (`memory.share_gpu`)."""
     if wanted(args):
         check_options(args)
         import jax
 
         jax.config.update("jax_platforms", "cpu")
+    else:
+        memory.share_gpu()
 
 
 def epochs_done(run_dir: str) -> int:
@@ -148,9 +151,11 @@ def epochs_done(run_dir: str) -> int:
 
 
 def worker_env(gpus_per_cell: float) -> dict[str, str]:
-    """The environment variables of a cell's worker: this checkout's packages first on its path, and with a
-    fraction of a GPU, JAX's share of the GPU's memory."""
-    env = {"PYTHONPATH": os.pathsep.join(p for p in (ROOT, os.environ.get("PYTHONPATH")) if p)}
+    """The environment variables of a cell's worker: this checkout's packages first on its path, XLA's C++ logs as
+    the command line has them (off unless TF_CPP_MIN_LOG_LEVEL says otherwise: `experiments`), and with a fraction
+    of a GPU, JAX's share of the GPU's memory."""
+    env = {"PYTHONPATH": os.pathsep.join(p for p in (ROOT, os.environ.get("PYTHONPATH")) if p),
+           "TF_CPP_MIN_LOG_LEVEL": os.environ.get("TF_CPP_MIN_LOG_LEVEL", "3")}
     if 0 < gpus_per_cell < 1:
         env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{memory.FULL_GPU_FRACTION * gpus_per_cell:.2f}"
     return env

@@ -14,6 +14,10 @@
   with a band of ± one standard deviation over seeds: numpy's population std, 0 for one
   seed) and PREFIX.csv (the plotted numbers).
 - `markdown_table`, `summary_table`: Markdown tables.
+- `load_floors`: each task's floor (what a policy that does nothing scores, per goal subset), as
+  `python -m experiments.probes.floors` stored it in results/floors/figures.json; `floor_text` names it beside a
+  score, `seeds_above` tests each seed's last epochs against it.
+- `machine_time`: the GPU time runs held, runs that shared a GPU counted once (`gpu_sharing`).
 
 Times: metrics.csv's `wall_time` counts from when the training programs were built (compilation
 not counted), `wall_time_with_compile` from when training began (compilation included; absent
@@ -28,7 +32,10 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import fnmatch
 import functools
+import glob
+import json
 import os
 import re
 from collections import Counter
@@ -37,12 +44,16 @@ from typing import Callable, Mapping, Sequence
 import numpy as np
 
 from bidal_jax.run import runfiles
+from experiments import stats
 
 X_AXES = {"env_steps": "env steps per seed", "epoch": "epoch", "wall_time": "wall time (s)"}
 SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
 BLOCK = re.compile(r"seeds-(\d+)-(\d+)$")  # a block's folder in its cell's: the indices of its first and last seed
 AIR = "eval_success_air"  # nicol_lift's success over its air goals alone (`Env.goal_subsets`)
 WITH_COMPILE = "wall_time_with_compile"
+FLOORS = os.path.join("results", "floors")  # where `python -m experiments.probes.floors` writes the floors
+FLOORS_FILE = "figures.json"
+ALPHA = 0.05  # the level of the per-seed test against the floor (`seeds_above`)
 
 
 class RunError(runfiles.RunFileError):
@@ -384,3 +395,102 @@ def summary_table(
             cells.append("never" if hit is None else f"{hit.epoch}, {hit.env_steps:,.0f}, {hit.wall_time:.0f} s")
         rows.append(cells)
     return markdown_table(head, rows)
+
+
+@dataclasses.dataclass(frozen=True)
+class Floor:
+    """A task's floor over one goal subset: the estimate, its 95 % Monte Carlo half-width and the share of goals in
+    the subset (`envs_mjx.floors`)."""
+
+    value: float
+    half_width: float
+    share: float
+
+
+Floors = dict[str, dict[str, Floor]]  # task -> goal subset ("all", "air", "table") -> its floor
+
+
+def load_floors(folder: str = FLOORS) -> Floors:
+    """The floors stored in FOLDER/figures.json (`experiments.probes.floors`): task -> subset -> `Floor`; {} where
+    the file does not exist (the tables then say the floor is not computed); RunError naming a damaged one."""
+    path = os.path.join(folder, FLOORS_FILE)
+    if not os.path.exists(path):
+        return {}
+    try:
+        with open(path, encoding="utf-8") as f:
+            found = json.load(f)
+        return {task: {name: Floor(float(f["value"]), float(f["half_width"]),
+                                   f["resets"] / subsets["all"]["resets"]) for name, f in subsets.items()}
+                for section in found if "floors" in section for task, subsets in section["floors"].items()}
+    except (OSError, KeyError, TypeError, ValueError, ZeroDivisionError) as err:  # a bad JSON is a ValueError
+        raise RunError(f"{path}: not the floors `python -m experiments.probes.floors` writes ({err!r})") from None
+
+
+def floor_value(floors: Floors, task: str, subset: str = "all") -> str:
+    """"0.031" for a task's floor over `subset`; "not computed" where results/floors lacks it."""
+    found = floors.get(task, {}).get(subset)
+    return "not computed" if found is None else f"{found.value:.3f}"
+
+
+def floor_text(floors: Floors, task: str, subset: str = "all") -> str:
+    """"floor 0.031" (`floor_value`)."""
+    return f"floor {floor_value(floors, task, subset)}"
+
+
+def seeds_above(success: np.ndarray, episodes: float, floor: float, last_n: int, alpha: float = ALPHA) -> np.ndarray:
+    """Per seed [S] of `success` [E, S] (eval success per epoch), whether it is clearly above `floor`: the one-sided
+    binomial test (`stats.above_p`) of its successes among its last min(last_n, E) epochs' eval episodes
+    (`episodes` an epoch per seed: the run's eval_envs, times the share of goals in a subset for a subset's
+    success, rounded down) against `floor`, Holm-corrected over the seeds (`stats.holm`), at `alpha`."""
+    per_epoch = int(episodes)
+    window = success[-last_n:]
+    hits = np.rint(window * per_epoch).sum(axis=0).astype(int)
+    p = [stats.above_p(int(k), per_epoch * window.shape[0], floor) for k in hits]
+    return stats.holm(p) < alpha
+
+
+RESULTS = "results"  # the experiments' results folder, whose figures.json files record how their runs shared GPUs
+
+
+def gpu_sharing(root: str = RESULTS) -> list[tuple[tuple[str, ...], int]]:
+    """How runs shared a GPU, as each experiment's figures.json records it (ROOT/*/figures.json, a section's
+    "gpu_sharing": [{"runs": [glob patterns of run folders relative to ROOT], "at_once": k}, ...]): (patterns, k)
+    per group of runs that trained k at a time on one machine. config.json and metrics.csv record neither when a
+    run started nor what ran beside it, so this is the record the machine time rests on."""
+    groups = []
+    for path in sorted(glob.glob(os.path.join(root, "*", "figures.json"))):
+        with open(path, encoding="utf-8") as f:
+            sections = json.load(f)
+        groups += [(tuple(g["runs"]), int(g["at_once"])) for s in sections for g in s.get("gpu_sharing", [])]
+    return groups
+
+
+def gpus_of(run: dict) -> int:
+    """The GPUs of the machine a run's processes ran on: the most of config.json's "hardware" entries ("2 × NVIDIA
+    H100 ..."); 1 where it records none."""
+    counts = [int(m.group(1)) for h in run["config"].get("hardware") or [] if (m := re.match(r"(\d+) ×", h))]
+    return max(counts, default=1)
+
+
+def machine_time(runs: Sequence[dict], root: str = RESULTS,
+                 groups: Sequence[tuple[tuple[str, ...], int]] | None = None) -> tuple[float, float]:
+    """(Machine seconds, process seconds) of `runs`: process time is the sum of each run's `last_time`; machine
+    time is the time the GPUs were held, wall time × the GPUs of the machine (`gpus_of`), with runs that shared a
+    machine counted once: a group of runs that trained k at a time (`gpu_sharing`, by their folders relative to
+    `root`) held it for max(their summed time / k, the longest of them), a queue that keeps k running; a run in no
+    group held its machine alone."""
+    groups = gpu_sharing(root) if groups is None else groups
+    members: dict[int, list[dict]] = {}
+    machine = 0.0
+    for run in runs:
+        where = os.path.relpath(run["dir"], root)
+        found = next((i for i, (patterns, _) in enumerate(groups) if any(fnmatch.fnmatch(where, p) for p in patterns)),
+                     None)
+        if found is None:
+            machine += last_time(run)[0] * gpus_of(run)
+        else:
+            members.setdefault(found, []).append(run)
+    for i, shared in members.items():
+        times = [last_time(run)[0] for run in shared]
+        machine += max(sum(times) / groups[i][1], max(times)) * max(gpus_of(run) for run in shared)
+    return machine, sum(last_time(run)[0] for run in runs)

@@ -29,8 +29,11 @@ Exit codes (`cli.exit_code`): 0 done; 2 bad command line, config or checkpoint, 
 by another run (one `error: ...` line on stderr, nothing written); 3 diverged; 4 the
 disk: no room for one checkpoint at start (nothing written), or a write failed (no space,
 quota, read-only file system, I/O error, permission denied; the unfinished checkpoint is deleted, the last
-good one is kept); 130 stopped by SIGINT, 143 by SIGTERM (a checkpoint was saved; Ctrl-C before training
-starts: nothing saved). A resumed run's metrics.csv that is damaged or a folder is refused with 2, one
+good one is kept); 6 out of device memory (while compiling or in an epoch, or XLA's GPU autotuner without memory
+to try its kernels in: the last good checkpoint is kept; or a GPU that other processes hold with too little free
+for the run); 130 stopped by SIGINT, 143 by SIGTERM (a checkpoint was saved; Ctrl-C before training
+starts: nothing saved). Sizes too large for the device are refused with 2, from their shapes before anything
+compiles (`bidal_jax.run.memory`). A resumed run's metrics.csv that is damaged or a folder is refused with 2, one
 it cannot write with 4, before compiling. docs/usage.md lists every command's exit codes.
 """
 

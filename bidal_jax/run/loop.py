@@ -14,8 +14,9 @@ empty; config.json's "fresh_buffer_epochs" records after which epochs.
 Errors are exceptions whose message is one line: `CheckpointError` (bad input, nothing written),
 `ConfigError` (an epoch program larger than the device's memory, `memory.check_program`: refused before it
 trains), `Diverged`, `Interrupted` (a checkpoint was saved), `rundir.DiskError` (a write failed for want of disk),
-`memory.OutOfMemory` (the device ran out of memory all the same while the program compiled or trained; the last
-good checkpoint is kept).
+`memory.OutOfMemory` (the device ran out of memory all the same while the program compiled or trained, or XLA's GPU
+autotuner had no memory to try its kernels in, or a GPU that another process holds has too little free for the
+compiled epoch; the last good checkpoint is kept).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import concurrent.futures
 import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -109,6 +111,12 @@ def build(
     run = config.run
     start = time.time()
     shards = f", envs split {programs.shards} ways" if programs.shards > 1 else ""
+    train = config.train
+    runs = train.batch_size // train.sample_run
+    if run.env_shards > programs.shards and math.gcd(train.num_envs, train.eval_envs, runs) % run.env_shards:
+        # fewer splits than asked because the sizes do not divide: say so, rather than leave devices idle unexplained
+        shards += (f"{', not split' if programs.shards == 1 else ''} (--env-shards {run.env_shards}: a split divides "
+                   f"--num-envs {train.num_envs}, --eval-envs {train.eval_envs} and the batch's {runs} runs)")
     engine = ", physics on MuJoCo Warp" if env.backend == "warp" else ""
     if env.backend == "jax" and run.physics == "auto" and programs.devices[0].platform == "gpu":
         engine = f", physics on MJX-JAX: MuJoCo Warp not used, {warp_problem(programs.devices)}"
@@ -120,7 +128,7 @@ def build(
         state, step = _restore(run.run_dir, programs, fresh_buffer=fresh_buffer)
         if fresh_buffer:
             log(f"resuming epoch {step} with an empty replay buffer (--fresh-buffer: the checkpoint's is not restored)")
-        compiled = _compile(programs, config, env, state, log)
+        compiled = _compile(programs, config, env, state, log, resume=True)
     else:
         (state, compiled), step = _initial_state_and_epoch(programs, config, env, log), 0
         if initialize is not None:  # its leaves may come from elsewhere: place them on the run's devices
@@ -149,11 +157,12 @@ def _initial_state_and_epoch(programs: Programs, config: Config, env, log: Calla
         return initial.result(), compiled
 
 
-def _compile(programs: Programs, config: Config, env, state, log: Callable) -> Callable:
+def _compile(programs: Programs, config: Config, env, state, log: Callable, resume: bool = False) -> Callable:
     """The compiled epoch for `state` (arrays, or their shapes, dtypes and shardings): through `exported` where it
     applies (one device, one env shard, one process, a persistent compilation cache; a line says when the traced
     program was loaded), else traced and compiled. ConfigError when it needs more of a device's memory than the
-    device has (`memory.check_program`): refused before it trains."""
+    device has (`memory.check_program`; a `resume`d run is told to resume on a larger device): refused before it
+    trains."""
     where = exported.folder()
     compiled = None
     if where and len(programs.devices) == 1 and programs.shards == 1 and jax.process_count() == 1 \
@@ -164,13 +173,13 @@ def _compile(programs: Programs, config: Config, env, state, log: Callable) -> C
             if loaded:
                 log(f"the traced epoch program loaded from {exported.path_of(where, key)}")
         except Exception as err:  # a program jax.export refuses: traced as before
-            if memory.exhausted(err):
+            if memory.device_failure(err):  # out of memory, or no memory to autotune in: the same again if traced
                 raise
             log(f"the epoch is traced in this process ({type(err).__name__}: {runfiles.first_line(err, 120)})")
     if compiled is None:
         compiled = programs.epoch.lower(state).compile()
         stats = memory.analysis(compiled)
-    memory.check_program(stats, memory.device_memory())
+    memory.check_program(stats, memory.device_memory(), resume)
     return compiled
 
 
@@ -359,7 +368,7 @@ def train(
         except BaseException as err:
             checkpoints.abandon()
             runfiles.close_quietly(bar.close, log.close, checkpoints.close)
-            if memory.exhausted(err):  # the device ran out of memory: one line, the last good checkpoint kept
+            if memory.device_failure(err):  # the device ran out of memory: one line, the last good checkpoint kept
                 raise memory.ran_out(f"training epoch {e}", err, checkpoints.last_good()) from None
             raise
         with rundir.disk_errors(f"closing the run's files in {run.run_dir}", checkpoints.last_good()):

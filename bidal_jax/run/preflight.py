@@ -3,19 +3,21 @@
     with prepare(given, env_names=envs_mjx.names(), make_env=envs_mjx.make) as prepared:
         row = loop.train(prepared.env, prepared.config, prepared.programs)
 
-`prepare` is one pass, in this order: the run directory not in use (`rundir.check_not_in_use`); the config,
-resolved from the values given (`resolve`) or, resuming, the checkpoint's (`resumed_config`: refused where it
-differs from config.json or from the options given; the run's files, `runfiles.check_run_files`, and the
-checkpoint's replay buffer), checked once (`validate.check`); a new run's directory (never mixed into an existing
-one; `overwrite` deletes only what a run writes, `rundir.check_run_dir`); the env, and what it must offer
-(`validate.check_env_support`); the run's programs, built once (`loop.make_programs`: its devices and physics
-engine too), from whose training state (`jax.eval_shape`) a transfer's source run is checked, and whether it fits
-in the device's memory (`memory.check_state`; the compiled epoch is checked once compiled, `memory.check_program`)
-and one checkpoint of it on the disk (`rundir.check_space`). Then it locks the run directory (`rundir.lock`,
-process 0), empties it with `overwrite`, and holds the lock until the `with` block ends: a second run, resumed
-run or experiment on it is refused. Errors are one line each: `ConfigError` (`rundir.RunDirInUse` and
-`runfiles.RunFileError`, a resumed run's damaged file, among them), `CheckpointError`, `rundir.DiskError` (no
-space for one checkpoint, or a resumed run's file that it cannot write).
+`prepare` is one pass, in this order: the run directory not in use (`rundir.check_not_in_use`); the config, resolved
+from the values given (`resolve`) or, resuming, the checkpoint's (`resumed_config`: refused where it differs from
+config.json or from the options given; the run's files, `runfiles.check_run_files`, and the checkpoint's replay
+buffer), checked once (`validate.check`); a new run's directory (never mixed into an existing one; `overwrite`
+deletes only what a run writes, `rundir.check_run_dir`); the env, and what it must offer
+(`validate.check_env_support`); the run's programs, built once (`loop.make_programs`: its devices and physics engine
+too), from whose training state (`jax.eval_shape`) a transfer's source run is checked, and whether it fits in the
+device's memory (`memory.check_state`), and so does the least working memory of its epoch beside it, from shapes
+alone (`memory.check_floor`: before XLA compiles a program too large to compile; the compiled epoch is checked once
+compiled, `memory.check_program`), and one checkpoint of it on the disk (`rundir.check_space`). Then it locks the
+run directory (`rundir.lock`, process 0), empties it with `overwrite`, and holds the lock until the `with` block
+ends: a second run, resumed run or experiment on it is refused. Errors are one line each: `ConfigError`
+(`rundir.RunDirInUse` and `runfiles.RunFileError`, a resumed run's damaged file, among them), `CheckpointError`,
+`rundir.DiskError` (no space for one checkpoint, or a resumed run's file that it cannot write), `memory.OutOfMemory`
+(a GPU that another process holds has too little free for the run's floor).
 """
 
 from __future__ import annotations
@@ -156,7 +158,10 @@ def prepare(
     if run.init_from and not resume:  # a resumed run continues its own checkpoint
         transfer.check(config, state, env.observation_spec.proprio_segments, make_env)
     whole = memory.tree_bytes(state)  # every seed's: what a checkpoint holds
-    memory.check_state(whole // len(programs.devices), memory.device_memory(), run.seeds)
+    available, seed_devices = memory.device_memory(), len(programs.devices) // programs.shards
+    memory.check_state(whole // len(programs.devices), available, run.seeds, resume)
+    least = memory.floor(config, env, whole // len(programs.devices), run.seeds // seed_devices, programs.shards)
+    memory.check_floor(least, available, config, resume)
     rundir.check_space(run.run_dir, whole)
     with rundir.lock(run.run_dir, resume, overwrite):
         yield Prepared(config, env, programs)

@@ -1,47 +1,55 @@
-"""The paper's three claims, measured on our run folders, each with a verdict by a stated rule:
+"""The paper's three claims, measured on our run folders, each with a verdict by a rule fixed before the runs are read:
 
     python -m experiments.paper.claims --curves results/curves --noise results/noise --transfer results/transfer
-        --out results/claims.md [--readme docs/reproduction.md] [--stale TASK[,TASK]] [--last-n 10]
+        [--plain results/curves-plain] [--floors results/floors] --out results/claims.md [--readme docs/reproduction.md]
+        [--stale TASK[,TASK]] [--last-n 10]
 
-(a) Learning (paper Sec. IV-A, Fig. 4): the BidAL agents learn every task and the visual baseline none; multimodal
-    BidAL is best overall, most clearly on lifting. From `--curves` (OUT/<task>/<agent>,
-    experiments/paper/curves.py), per seed: its final success (the mean of its last `--last-n` epochs), its
-    normalised AUC (its mean success over all epochs: learning speed over the whole budget) and its env steps to
-    0.5 and to 0.9 success (the first epoch its success reaches the threshold; a seed that never does counts the
-    run's last env steps, its budget, and is named censored: its steps are understated, so a difference against
-    its arm is understated, never overstated). On nicol_lift every figure is the success over air goals alone
-    (metrics.csv's `eval_success_air`: a policy that slides but never lifts scores 0.5625 overall and 0.125
-    there); a run without that column (older than it) is judged on its overall success and named in the rule.
-    Checks: a run has learned a task when its final success (mean over seeds) is at least LEARNED; multimodal
-    BidAL against the best other agent in each measure (final success, AUC, env steps to 0.5, to 0.9): each a
-    bootstrap interval over seeds of the difference, over the mean over tasks for "best overall" (env steps as a
-    share of each run's budget, so that tasks of other lengths weigh alike) and on nicol_lift for "most clearly on
-    lifting" (env steps as they are), where also its final-success margin must be larger than on every other task;
-    and the seeds that lift (final success over air goals ≥ LIFTS; without the column overall ≥ LIFTS_OVERALL,
-    which implies it when half the goals lie in the air), k of n per agent with Wilson intervals, multimodal
-    BidAL's against the other agent's with the largest share by Fisher's exact test (two-sided; favours or against
-    when p < ALPHA, by the side, else unclear).
-(b) Noise (Sec. IV-B, Table II): at κ = 10 and 15 % multimodal BidAL's success is steadier (each run's
-    std over the last N epochs, the mean over runs) and higher (the mean over runs of each run's last-N
-    mean) than both baselines'. From `--noise` (experiments/paper/noise_robustness.py).
-(c) Transfer (Sec. IV-C, Fig. 6): reduced lift learns faster from nicol_slide's representation than
-    from scratch: fewer env steps to 0.5 success, larger AUC (per seed, experiments/paper/transfer_learning.py). From
-    `--transfer`.
+Every comparison is named in advance (no comparator is picked from the data), has one primary measure that decides
+(`PRIMARY`, AUC: each seed's mean success over all epochs, learning speed over the whole budget) while the others are
+reported, and where several checks decide one claim their p-values are Holm-corrected (`stats.holm`). A difference
+is Welch's t over seeds (`stats.welch_difference`: a percentile bootstrap undercovers at 5 seeds). A success measure
+where both arms are within `CEILING` of 1 is "at the ceiling" and does not decide. Floors: each task's success of a
+policy that does nothing (`report.load_floors`, written by `python -m experiments.probes.floors`).
 
-Verdicts. Each claim is a list of checks, each of which favours the claim, is against it, or is unclear. A
-comparison's check is its 95 % bootstrap interval over seeds (`stats.bootstrap_difference`): favours when the
-interval lies on the claimed side of 0, against when on the other, else unclear; a threshold's check favours or is
-against; Fisher's exact test as in (a). "reproduced": every check favours; "reversed": none favours and one is
-against; "not reproduced": otherwise; "not measured": a run the claim needs is missing or short (fewer epochs than
-its budget: the curves grid's epochs per task, or the env and agent preset's for the noise and transfer runs, or its
-config's if more), its figures still shown; a learning claim needs the cells of the agents it is about (the λ = 0
-row multimodal_bidal's and the ablation's, "best overall" and the lifting rows every paper agent's). Runs made on
-other physics than the task's model today (config.json records the fingerprints of the physics a run trained on,
-`envs_mjx.base.Env.physics_id`; runs older than that record none), and runs of a task named by `--stale`, get
-their verdict qualified "measured on ... runs not recorded on today's physics".
+(a) Learning (paper Sec. IV-A, Fig. 4), from `--curves` (OUT/<task>/<agent>, experiments/paper/curves.py); on
+    nicol_lift every figure is the success over air goals alone (metrics.csv's `eval_success_air`; a run without
+    that column is judged on its overall success and named in the rule).
+    - The BidAL agents learn every task, the visual baseline none: a run has learned when every seed is clearly above
+      its task's floor (`report.seeds_above`: a one-sided binomial test of its last `--last-n` epochs' eval episodes
+      against the floor, Holm over the seeds; on nicol_lift's air goals the floor is at least `LIFT_NEVER`, what a
+      policy that slides but never lifts scores), and has failed when no seed is.
+    - Best overall: `OURS` against the paper's baselines (`PAPER_BASELINES`), AUC over the mean over tasks, Holm
+      over the two; final success and env steps to 0.5 and 0.9 (a share of each run's budget; a seed that never gets
+      there counts the budget: censored) reported.
+    - Most clearly on lifting: its AUC margin on nicol_lift less its mean margin on the other tasks (a contrast),
+      against proprio_baseline (`LIFT_BASELINES`: against the visual baseline, which learns next to nothing
+      anywhere, the margin would be OURS's own level).
+    - Added arms (`ADDED`, not in the paper), each its own row: OURS against multimodal_baseline and against the
+      λ = 0 ablation (where a gain comes from), AUC over the mean over tasks.
+    - Lifting seeds (a seed lifts when its final success over air goals is ≥ LIFTS), Fisher's exact test of OURS's
+      against each paper baseline's, Holm over the two: under held starts from `--curves`, and under the plain
+      protocol (`--exploration-starts 0`) from `--plain` (PLAIN/nicol_lift/<agent>, as the curves grid writes it),
+      OURS and the multimodal baseline (an added arm) against proprio_baseline; "not measured" until those runs exist.
+(b) Noise (Sec. IV-B, Table II), from `--noise` (experiments/paper/noise_robustness.py): at κ = 10 and 15 %, OURS's
+    success is steadier (each run's residual std around its own fitted trend over the last N epochs,
+    `protocol.residual_spread`) and higher (each run's last-N mean) than both baselines', Welch over runs, Holm over
+    the four checks of each row. Steadiness is "not measured" while a curve still moves over the window
+    (`protocol.trending`: its runs' slope interval excludes 0): a spread around a climb is the climb's.
+(c) Transfer (Sec. IV-C, Fig. 6): reduced lift learns faster from nicol_slide's representation than from scratch:
+    transfer − scratch in AUC (primary), env steps to 0.3 and 0.5 reported. From `--transfer`.
 
-Time: the file ends with what the runs on today's physics took, per experiment and per machine (config.json's
-"hardware"; "not recorded" for runs older than that record): the sum of each run's last `wall_time_with_compile`.
+Verdicts. A check favours the claim, is against it, is unclear, or is at the ceiling (which does not decide).
+"reproduced": every deciding check favours; "reversed": none favours and one is against (so a comparison is
+reversed only where its primary measure's interval lies against the claim); "not reproduced": otherwise; "not
+measured": a run the claim needs is missing or short (fewer epochs than its budget: the curves grid's epochs per
+task, or the env and agent preset's for the noise and transfer runs, or its config's if more), a task lacks its
+floor, or a steadiness would be read on a climb; its figures still shown. Runs made on other physics than the task's
+model today (config.json's fingerprints, `envs_mjx.base.Env.physics_id`; runs older than that record none), and runs
+of a task named by `--stale`, get their verdict qualified "measured on ... runs not recorded on today's physics".
+
+Time: the file ends with the machine time the runs on today's physics held (`report.machine_time`: wall time × the
+GPUs of their machine, runs that shared a GPU counted once as the experiments' figures.json record it), per
+experiment and in all, and beside it the summed process time per machine (config.json's "hardware").
 
 The previous table: the section of `--out` from its line `## On the earlier tasks` to its end is kept when the
 file is written again, so that the claims as judged on the earlier tasks' runs stay beside today's for
@@ -64,31 +72,41 @@ import collections
 import dataclasses
 import os
 import sys
+import types
 from typing import Sequence
 
 import numpy as np
 
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
+from envs_mjx.nicol import AIR_GOAL_PROBABILITY, NicolLift
 from experiments import cli, report, stats
 from experiments.paper import grid, protocol
 
 PROG = "python -m experiments.paper.claims"
-LEARNED = 0.5  # final success at which a run has learned its task
 BIDAL = ("visual_bidal", "multimodal_bidal")
-OURS, VISUAL, LIFT = "multimodal_bidal", "visual_baseline", "nicol_lift"
-ABLATION = "multimodal_bidal_no_ri"  # OURS without the intrinsic reward (λ = 0): no paper agent, never "the best other"
-PAPER_AGENTS = tuple(a for a in AGENTS if a != ABLATION)
+OURS, VISUAL, PROPRIO, LIFT = "multimodal_bidal", "visual_baseline", "proprio_baseline", "nicol_lift"
+ABLATION = "multimodal_bidal_no_ri"  # OURS without the intrinsic reward (λ = 0): an added arm, no paper agent
+PAPER_BASELINES = (PROPRIO, VISUAL)  # Fig. 4's comparisons: the paper's baselines
+# "especially on lifting" is a margin larger on lifting than elsewhere: against the baseline that learns the tasks
+# (against visual_baseline, which learns next to nothing anywhere, the margin would be OURS's own level)
+LIFT_BASELINES = (PROPRIO,)
+ADDED = ("multimodal_baseline", ABLATION)  # our added arms, each compared on its own row
 NOISE_KAPPAS = (0.10, 0.15)
-BASELINES = ("multimodal_baseline", "proprio_baseline")
-FAVOURS, AGAINST, UNCLEAR = "favours", "against", "unclear"
+BASELINES = ("multimodal_baseline", "proprio_baseline")  # Table II's
+FAVOURS, AGAINST, UNCLEAR, AT_CEILING = "favours", "against", "unclear", "at the ceiling"
 SPEED = (0.5, 0.9)  # success thresholds of claim (a)'s learning speed
 FINAL, AUC = "final success", "AUC"
+PRIMARY = AUC  # the measure that decides a comparison of learning speed
 STEPS_TO = "env steps to {:g}"
-MEASURES = (FINAL, AUC, *(STEPS_TO.format(t) for t in SPEED))
+MEASURES = (AUC, FINAL, *(STEPS_TO.format(t) for t in SPEED))
+CEILING = 0.02  # a success measure where both arms are within this of 1 does not decide
 LIFTS = protocol.LIFTS  # a seed lifts when its final success over air goals is at least this
 LIFTS_OVERALL = 0.75  # the same on overall success, for runs without air goals' success: air ≥ 2·overall − 1
-ALPHA = 0.05  # Fisher's exact test: the p below which a difference of lifting seeds counts
+# what a policy that slides perfectly but never lifts scores over nicol_lift's air goals (its method reads only the
+# share of air goals, which this value does not depend on)
+LIFT_NEVER = NicolLift.never_lift_success(types.SimpleNamespace(air_goal_probability=AIR_GOAL_PROBABILITY))["air"]
+ALPHA = 0.05  # the level of every test: a check decides when its (Holm-adjusted) p is below it
 NOT_MEASURED = "not measured"
 README_START = "<!-- claims: written by experiments.paper.claims --readme; edits up to the end mark are lost -->"
 README_END = "<!-- end of claims -->"
@@ -106,20 +124,28 @@ class Claim:
     rule: str
 
 
-def compare(low: float, high: float, positive: bool) -> str:
-    """A comparison's check from the 95 % interval of its difference; `positive`: the claim says it is > 0."""
-    if low > 0 or high < 0:
-        return FAVOURS if (low > 0) == positive else AGAINST
-    return UNCLEAR
+def check(diff: stats.Difference, p: float, positive: bool, ceiling: bool = False) -> str:
+    """A comparison's check from its difference and its (Holm-adjusted) p: favours when p < ALPHA and the difference
+    lies on the claimed side (`positive`: the claim says it is > 0), against when p < ALPHA on the other, else
+    unclear; `AT_CEILING` (it does not decide) where `ceiling`."""
+    if ceiling:
+        return AT_CEILING
+    if np.isnan(p) or p >= ALPHA:
+        return UNCLEAR
+    return FAVOURS if (diff.point > 0) == positive else AGAINST
 
 
 def verdict(checks: Sequence[str]) -> str:
-    """"reproduced" (all favour), "reversed" (none favours, one is against) or "not reproduced"."""
+    """Of the deciding checks (all but `AT_CEILING`): "reproduced" (all favour), "reversed" (none favours, one is
+    against) or "not reproduced"; "not reproduced (at the ceiling)" when none decides."""
     if not checks:
         raise ValueError("verdict: no checks")
-    if all(c == FAVOURS for c in checks):
+    deciding = [c for c in checks if c != AT_CEILING]
+    if not deciding:
+        return "not reproduced (at the ceiling: no check decides)"
+    if all(c == FAVOURS for c in deciding):
         return "reproduced"
-    return "reversed" if AGAINST in checks and FAVOURS not in checks else "not reproduced"
+    return "reversed" if AGAINST in deciding and FAVOURS not in deciding else "not reproduced"
 
 
 def judged(checks: Sequence[str], gaps: Sequence[str], tasks: set[str], stale: set[str]) -> str:
@@ -144,18 +170,25 @@ def figure(values: np.ndarray) -> str:
     return f"{mean:.3f} {stats.interval_text(low, high)}"
 
 
-def difference(a: Sequence[np.ndarray], b: Sequence[np.ndarray], digits: int = 3) -> tuple[str, float, float]:
-    """(text "+d [low, high]", low, high) of `stats.bootstrap_difference(a, b)`."""
-    diff, low, high = stats.bootstrap_difference(a, b)
-    return f"{diff:+,.{digits}f} {stats.interval_text(low, high, digits)}", low, high
+def difference_text(diff: stats.Difference, digits: int = 3) -> str:
+    """"+d [low, high]" of a `stats.Difference`."""
+    return f"{diff.point:+,.{digits}f} {stats.interval_text(diff.low, diff.high, digits)}"
+
+
+def holm_checks(diffs: Sequence[stats.Difference], positive: bool, ceilings: Sequence[bool]) -> list[str]:
+    """The checks of the deciding comparisons `diffs` of one claim: their p Holm-adjusted over those that are not
+    at the ceiling (`stats.holm`), each by `check`."""
+    deciding = [i for i, c in enumerate(ceilings) if not c]
+    adjusted = dict(zip(deciding, stats.holm([diffs[i].p for i in deciding]))) if deciding else {}
+    return [check(d, adjusted.get(i, np.nan), positive, ceilings[i]) for i, d in enumerate(diffs)]
 
 
 # ----- (a) learning curves ---------------------------------------------------------------------------
 
 
-def load_grid(curves_dir: str) -> dict[tuple[str, str], dict | None]:
+def load_grid(curves_dir: str, tasks: Sequence[str] = protocol.TASKS) -> dict[tuple[str, str], dict | None]:
     """(task, agent) -> the run in CURVES/<task>/<agent> (`report.load_run`), None where it has no epochs."""
-    return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in protocol.TASKS for a in AGENTS}
+    return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in tasks for a in AGENTS}
 
 
 def judged_curve(run: dict) -> tuple[report.Curve, bool]:
@@ -189,23 +222,39 @@ class Grid:
     figures: dict[tuple[str, str], Figures]  # (task, agent) -> `seed_figures` of its `judged_curve`
     budgets: dict[tuple[str, str], float]  # (task, agent) -> its run's last env steps per seed
     overall: tuple[str, ...]  # the agents whose nicol_lift run is judged on overall success (no `report.AIR`)
+    above: dict[tuple[str, str], np.ndarray]  # (task, agent) -> per seed, clearly above its floor (`learned_seeds`)
+    floors: dict[tuple[str, str], float]  # (task, agent) -> the floor its curve is tested against
 
 
-def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int) -> Grid:
-    """The `Grid` of the runs that exist."""
-    figures, budgets, overall = {}, {}, []
+def learned_floor(floors: report.Floors, task: str, overall: bool) -> tuple[float, float] | None:
+    """(The floor a run's judged curve is tested against, the share of eval episodes it counts): the task's floor
+    over all goals (`report.load_floors`); on nicol_lift over air goals the larger of that subset's floor and what a
+    policy that never lifts scores there (`LIFT_NEVER`: lifting is the skill), or, judged on overall success, the
+    floor over all goals. None where results/floors lacks the task."""
+    found = floors.get(task, {})
+    if task != LIFT or overall:
+        return (found["all"].value, 1.0) if "all" in found else None
+    return (max(found["air"].value, LIFT_NEVER), found["air"].share) if "air" in found else None
+
+
+def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: report.Floors) -> Grid:
+    """The `Grid` of the runs that exist; `above` and `floors` only where the task's floor is known."""
+    figures, budgets, overall, above, tested = {}, {}, [], {}, {}
     for key, run in runs.items():
         if run:
             curve, fallback = judged_curve(run)
             figures[key], budgets[key] = seed_figures(curve, last_n), float(curve.env_steps[-1])
             overall += [key[1]] * fallback
-    return Grid(figures, budgets, tuple(overall))
+            if (floor := learned_floor(floors, key[0], fallback)) is not None:
+                tested[key] = floor[0]
+                above[key] = report.seeds_above(curve.success, protocol.eval_episodes(run) * floor[1], floor[0], last_n)
+    return Grid(figures, budgets, tuple(dict.fromkeys(overall)), above, tested)
 
 
 def grid_gaps(runs: dict[tuple[str, str], dict | None], agents: Sequence[str]) -> list[str]:
     """Why the cells of `agents` cannot measure a claim (`gap`): the runs of a claim about those agents alone, so
     that a missing cell of another agent (the λ = 0 ablation's) leaves it measured."""
-    found = [gap(f"{t}/{a}", run, max(protocol.EPOCHS[t], protocol.budget(run) if run else 0))
+    found = [gap(f"{t}/{a}", run, max(protocol.EPOCHS.get(t, 0), protocol.budget(run) if run else 0))
              for (t, a), run in runs.items() if a in agents]
     return [g for g in found if g]
 
@@ -217,119 +266,179 @@ def air_note(overall: Sequence[str]) -> str:
     return note + (f"; its runs without that column ({', '.join(overall)}) on overall success" if overall else "")
 
 
-def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale: set[str]) -> list[Claim]:
-    """Claim (a): six rows, from the curves grid, the last on where a gain of OURS comes from (`reward_claim`)."""
-    measured = grid_figures(runs, last_n)
-    final = {key: f[FINAL][0] for key, f in measured.figures.items()}
-    tasks = set(protocol.TASKS)
-    rule = f"learned: final success (mean over seeds of each seed's last {last_n} epochs; {air_note(measured.overall)}"
-    rule += f") ≥ {LEARNED}"
-    rows = []
+def learned_rule(last_n: int, overall: Sequence[str]) -> str:
+    """The words of the learned checks (`learns_claims`)."""
+    return (f"a run has learned its task when every seed is clearly above the task's floor (what a policy that does "
+            f"nothing scores, results/floors; {air_note(overall)}, whose floor is the larger of the air goals' and "
+            f"{LIFT_NEVER}, what a policy that slides but never lifts scores there): a one-sided binomial test of the "
+            f"seed's successes in its last {last_n} epochs' eval episodes against the floor, Holm over the run's "
+            f"seeds, α = {ALPHA}; it has failed when no seed is; a task without a floor is not measured")
+
+
+def learns_claims(measured: Grid, runs: dict[tuple[str, str], dict | None], last_n: int,
+                  stale: set[str]) -> list[Claim]:
+    """Claim (a), first part: the BidAL agents learn every task, the visual baseline none (`learned_rule`)."""
+    tasks, rows = set(protocol.TASKS), []
     for name, agents, learns in ((f"(a) the BidAL agents ({', '.join(BIDAL)}) learn every task", BIDAL, True),
                                  (f"(a) the visual baseline ({VISUAL}) learns no task", (VISUAL,), False)):
-        cells = {key: v for key, v in final.items() if key[1] in agents}
-        checks = [FAVOURS if (v.mean() >= LEARNED) == learns else AGAINST for v in cells.values()]
-        learned = sum(v.mean() >= LEARNED for v in cells.values())
-        pick = (min if learns else max)(cells, key=lambda k: cells[k].mean(), default=None)
-        ours = "—" if pick is None else (f"{'lowest' if learns else 'highest'}: {pick[1]} on {pick[0]} "
-                                         f"{figure(cells[pick])}; {learned} of {len(cells)} runs learned")
+        cells = [key for key in measured.figures if key[1] in agents]
+        gaps = grid_gaps(runs, agents) + [f"{t} has no floor (python -m experiments.probes.floors)"
+                                          for t in sorted({k[0] for k in cells} - {k[0] for k in measured.above})]
+        checks = []
+        for key in cells:
+            above = measured.above.get(key)
+            learned, failed = above is not None and above.all(), above is not None and not above.any()
+            checks.append(UNCLEAR if not (learned or failed) else FAVOURS if learned == learns else AGAINST)
+        learned = sum(bool(measured.above.get(k, np.zeros(1, bool)).all()) for k in cells)
+        final = {key: measured.figures[key][FINAL][0] for key in cells}
+        pick = (min if learns else max)(cells, key=lambda k: final[k].mean(), default=None)
+        ours = "—" if pick is None else (
+            f"{'lowest' if learns else 'highest'}: {pick[1]} on {pick[0]} {figure(final[pick])} (floor "
+            f"{measured.floors[pick]:.3f}, {int(measured.above[pick].sum())} of {final[pick].size} seeds above it)"
+            if pick in measured.above else f"{'lowest' if learns else 'highest'}: {pick[1]} on {pick[0]} "
+            f"{figure(final[pick])} (floor not computed)")
+        ours += "" if pick is None else f"; {learned} of {len(cells)} runs learned"
         paper = "learn all tasks (Fig. 4)" if learns else "fails to learn any task (Fig. 4)"
-        rows.append(Claim(name, ours, paper, judged(checks or [UNCLEAR], grid_gaps(runs, agents), tasks, stale), rule))
-    rows += best_claims(measured, grid_gaps(runs, PAPER_AGENTS), stale, last_n)
-    return [*rows, reward_claim(measured, grid_gaps(runs, (OURS, ABLATION)), stale)]
+        rows.append(Claim(name, ours, paper, judged(checks or [UNCLEAR], gaps, tasks, stale),
+                          learned_rule(last_n, measured.overall)))
+    return rows
 
 
-def reward_claim(measured: Grid, gaps: list[str], stale: set[str]) -> Claim:
-    """Where a gain of OURS comes from: OURS against ABLATION, the same agent without the intrinsic reward (its
-    forward and inverse losses kept), in every measure of `speed` over the tasks both ran. Favoured: the reward
-    itself helps; unclear or against: any gain over the baselines is the representation losses'."""
-    tasks = [t for t in protocol.TASKS if (t, OURS) in measured.figures and (t, ABLATION) in measured.figures]
-    name, paper = f"(a) {OURS} learns faster than {ABLATION} (λ = 0)", "not tested (the paper has no λ = 0 agent)"
-    rule = speed_rule("every check favours").replace("the best other agent in that measure", ABLATION)
-    if not tasks:
-        return Claim(name, "—", paper, f"{NOT_MEASURED}: no {OURS} run beside an {ABLATION} run", rule)
-    checks, texts = speed(measured.figures, measured.budgets, tasks, share=True, other=ABLATION)
-    rule += f"; each the mean over tasks, steps as a share of each run's budget; {air_note(measured.overall)}"
-    return Claim(name, "mean over tasks: " + "; ".join(texts), paper, judged(checks, gaps, set(tasks), stale), rule)
+def learning_claims(runs: dict[tuple[str, str], dict | None], last_n: int, stale: set[str],
+                    floors: report.Floors) -> list[Claim]:
+    """Claim (a) from the curves grid: who learns (`learns_claims`), then OURS against its pre-registered
+    comparisons (`best_claims`, `lifting_claims`), and the added arms' rows."""
+    measured = grid_figures(runs, last_n, floors)
+    rows = learns_claims(measured, runs, last_n, stale)
+    rows += best_claims(measured, grid_gaps(runs, (OURS, *PAPER_BASELINES)), stale, floors)
+    rows += [added_claim(measured, other, grid_gaps(runs, (OURS, other)), stale, floors) for other in ADDED]
+    return [*rows, lifting_claim(measured, grid_gaps(runs, (OURS, *PAPER_BASELINES)), stale, last_n)]
 
 
-def best_other(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool) -> str:
-    """The paper's agent other than OURS, with a run on every one of `tasks`, whose seeds' `values` are best on
-    average over them (largest, or smallest where `higher` is False)."""
-    others = [a for a in PAPER_AGENTS if a != OURS and all((t, a) in values for t in tasks)]
-    return (max if higher else min)(others, key=lambda a: np.mean([values[t, a].mean() for t in tasks]))
+def measure_values(measured: Grid, name: str, share: bool) -> dict[tuple[str, str], np.ndarray]:
+    """(task, agent) -> each seed's `name`, env steps as a share of the run's budget where `share`."""
+    steps = name not in (FINAL, AUC)
+    return {key: f[name][0] / (measured.budgets[key] if share and steps else 1.0)
+            for key, f in measured.figures.items()}
 
 
-def margin(values: dict[tuple[str, str], np.ndarray], tasks: Sequence[str], higher: bool, digits: int = 3,
-           other: str | None = None) -> tuple[str, str, float, float]:
-    """(`other`, by default the best other agent by the mean over `tasks` of its seeds' `values`, text, low, high)
-    of OURS − that agent (`difference`: seeds resampled within each task); `higher`: whether larger values are
-    better."""
-    best = other or best_other(values, tasks, higher)
-    text, low, high = difference([values[t, OURS] for t in tasks], [values[t, best] for t in tasks], digits)
-    return best, text, low, high
+@dataclasses.dataclass(frozen=True)
+class Compared:
+    """OURS against one agent in one measure over tasks (`compared`)."""
+
+    other: str
+    measure: str
+    diff: stats.Difference
+    ceiling: bool  # a success measure where both arms are within CEILING of 1
+    text: str
 
 
-def speed(figures: dict[tuple[str, str], Figures], budgets: dict[tuple[str, str], float], tasks: Sequence[str],
-          share: bool, other: str | None = None) -> tuple[list[str], list[str]]:
-    """(checks, texts) of OURS against `other`, by default the best other agent in each of `MEASURES`, over `tasks`:
-    final success and
-    AUC larger, env steps to each of `SPEED` fewer (`share`: as a share of each run's budget, so that tasks of
-    other lengths weigh alike), each by its bootstrap 95 % interval; a text names the censored seeds."""
-    checks, texts = [], []
-    for name in MEASURES:
-        higher = name in (FINAL, AUC)
-        values = {key: f[name][0] / (budgets[key] if share and not higher else 1.0) for key, f in figures.items()}
-        digits = 3 if higher or share else 0
-        best, text, low, high = margin(values, tasks, higher, digits, other)
-        censored = sum(int(figures[t, a][name][1].sum()) for t in tasks for a in (OURS, best))
-        seeds = sum(figures[t, a][name][1].size for t in tasks for a in (OURS, best))
-        label = f"{name} (share of the budget)" if share and not higher else name
-        checks.append(compare(low, high, higher))
-        texts.append(f"{label} {text} over {best}" + (f" ({censored} of {seeds} seeds censored)" if censored else ""))
+def compared(measured: Grid, tasks: Sequence[str], other: str, name: str, share: bool,
+             weights: Sequence[float] | None = None) -> Compared:
+    """OURS − `other` in measure `name` over `tasks` (`stats.welch_difference`: the mean over tasks by default, or
+    the contrast `weights`), whether it is at the ceiling (both arms' figure ≥ 1 − CEILING: their means over the
+    tasks, or with `weights` on the first task), and its text (censored seeds named)."""
+    values = measure_values(measured, name, share)
+    diff = stats.welch_difference([values[t, OURS] for t in tasks], [values[t, other] for t in tasks], weights)
+    success = name in (FINAL, AUC)
+    focus = tasks[:1] if weights is not None else tasks
+    means = [np.mean([values[t, a].mean() for t in focus]) for a in (OURS, other)]
+    ceiling = success and min(means) >= 1.0 - CEILING
+    figures = measured.figures
+    censored = sum(int(figures[t, a][name][1].sum()) for t in tasks for a in (OURS, other))
+    seeds = sum(figures[t, a][name][1].size for t in tasks for a in (OURS, other))
+    label = f"{name} (share of the budget)" if share and not success else name
+    text = f"{label} {difference_text(diff, 3 if success or share else 0)}"
+    text += f" ({censored} of {seeds} seeds censored)" if censored else ""
+    return Compared(other, name, diff, ceiling, text + (" at the ceiling" if ceiling else ""))
+
+
+def comparison_text(primary: Compared, check_: str, p: float, secondary: Sequence[Compared]) -> str:
+    """"vs OTHER: AUC +d [l, h], Holm p = …: favours; reported: …"."""
+    reported = "; ".join(c.text for c in secondary)
+    p_text = "" if primary.ceiling else f", Holm p = {p:.3g}"
+    return f"vs {primary.other}: {primary.text}{p_text} ({check_}); reported, not deciding: {reported}"
+
+
+def floors_text(floors: report.Floors, tasks: Sequence[str]) -> str:
+    """"floors: planar_reach 0.008, …" of `tasks` (nicol_lift's over air goals)."""
+    return "floors: " + ", ".join(f"{t} {report.floor_value(floors, t, 'air' if t == LIFT else 'all')}" for t in tasks)
+
+
+def comparisons(measured: Grid, tasks: Sequence[str], others: Sequence[str], share: bool,
+                weights: Sequence[float] | None = None) -> tuple[list[str], list[str]]:
+    """(checks, texts): OURS against each of `others` with `PRIMARY` deciding (Holm over `others`, the comparisons
+    at the ceiling apart) and the other `MEASURES` reported; over `tasks` (the mean, or the contrast `weights`)."""
+    primaries = [compared(measured, tasks, o, PRIMARY, share, weights) for o in others]
+    checks = holm_checks([c.diff for c in primaries], True, [c.ceiling for c in primaries])
+    deciding = [i for i, c in enumerate(primaries) if not c.ceiling]
+    adjusted = dict(zip(deciding, stats.holm([primaries[i].diff.p for i in deciding]))) if deciding else {}
+    texts = [comparison_text(c, k, adjusted.get(i, np.nan), [compared(measured, tasks, c.other, m, share, weights)
+                                                              for m in MEASURES if m != PRIMARY])
+             for i, (c, k) in enumerate(zip(primaries, checks))]
     return checks, texts
 
 
-def speed_rule(what: str) -> str:
-    """The words of the checks of `speed`."""
-    return (f"{what}: for each of final success, AUC (each seed's mean success over all epochs) and env steps per "
-            f"seed to {' and to '.join(f'{t:g}' for t in SPEED)} (a seed that never gets there counts the run's "
-            "budget, its last env steps: censored), the bootstrap 95 % interval of OURS − the best other agent in "
-            "that measure over seeds lies on OURS's side of 0 (larger success and AUC, fewer steps)").replace(
-                "OURS", OURS)
+def comparison_rule(what: str, others: Sequence[str]) -> str:
+    """The words of a `comparisons` claim."""
+    holm = f", Holm over the {len(others)} comparisons" if len(others) > 1 else ""
+    return (f"pre-registered: {OURS} against {' and against '.join(others)}; primary measure {PRIMARY} (each seed's "
+            f"mean success over all epochs: learning speed over the whole budget), {what}; Welch's 95 % t interval "
+            f"and p over seeds{holm}; favours when p < {ALPHA} and {OURS}'s {PRIMARY} is larger, against when p < "
+            f"{ALPHA} and smaller; a measure where both arms are within {CEILING} of 1 is at the ceiling and does "
+            "not decide; final success and env steps to 0.5 and 0.9 (a seed that never gets there counts the run's "
+            "budget: censored) are reported, not deciding")
 
 
-def best_claims(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -> list[Claim]:
-    """Claim (a), second part: multimodal BidAL best overall (over the tasks' mean), most clearly on lifting,
-    on more seeds that lift."""
+def best_claims(measured: Grid, gaps: list[str], stale: set[str], floors: report.Floors) -> list[Claim]:
+    """Claim (a), "best overall" against the paper's baselines (the mean over tasks) and "most clearly on lifting"
+    (the contrast of its margin on nicol_lift against its mean margin on the other tasks)."""
     figures = measured.figures
-    tasks = [t for t in protocol.TASKS if (t, OURS) in figures]
     names = ((f"(a) {OURS} is best overall", "best overall (Fig. 4)"),
-             (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"),
-             (f"(a) more of {OURS}'s seeds lift than of any other agent", "especially on lifting (Fig. 4)"))
-    if not tasks or not any(all((t, a) in figures for t in tasks) for a in PAPER_AGENTS if a != OURS):
-        why = f"{NOT_MEASURED}: no {OURS} run beside another agent's on the same tasks"
+             (f"(a) {OURS} leads most clearly on {LIFT}", "especially on lifting (Fig. 4)"))
+    tasks = [t for t in protocol.TASKS if all((t, a) in figures for a in (OURS, *PAPER_BASELINES))]
+    if not tasks:
+        why = f"{NOT_MEASURED}: no {OURS} run beside the paper's baselines' on the same tasks"
         return [Claim(c, "—", p, why, "") for c, p in names]
-    checks, texts = speed(figures, measured.budgets, tasks, share=True)
+    checks, texts = comparisons(measured, tasks, PAPER_BASELINES, share=True)
     overall = Claim(
-        names[0][0], "mean over tasks: " + "; ".join(texts), names[0][1],
+        names[0][0] + f" (against the paper's baselines, {' and '.join(PAPER_BASELINES)})",
+        "mean over tasks: " + " / ".join(texts) + f"; {floors_text(floors, tasks)}", names[0][1],
         judged(checks, gaps, set(tasks), stale),
-        speed_rule("every check favours") + "; each the mean over tasks, steps as a share of each run's budget, "
-        f"seeds resampled within each run; {air_note(measured.overall)}")
-    if LIFT not in tasks:
-        why = f"{NOT_MEASURED}: {LIFT} missing"
-        return [overall, *(Claim(c, "—", p, why, "") for c, p in names[1:])]
-    final = {key: f[FINAL][0] for key, f in figures.items()}
-    margins = {t: final[t, OURS].mean() - final[t, best_other(final, [t], True)].mean() for t in tasks}
-    checks, texts = speed(figures, measured.budgets, [LIFT], share=False)
-    checks += [FAVOURS if margins[LIFT] > margins[t] else AGAINST for t in tasks if t != LIFT]
-    rest = ", ".join(f"{t} {margins[t]:+.3f}" for t in tasks if t != LIFT)
+        comparison_rule("the mean over tasks (env steps as a share of each run's budget)", PAPER_BASELINES)
+        + f"; {air_note(measured.overall)}")
+    others = [t for t in tasks if t != LIFT]
+    if LIFT not in tasks or not others:
+        return [overall, Claim(names[1][0], "—", names[1][1], f"{NOT_MEASURED}: {LIFT} or another task missing", "")]
+    order = [LIFT, *others]
+    checks, texts = comparisons(measured, order, LIFT_BASELINES, share=True,
+                                weights=[1.0, *([-1.0 / len(others)] * len(others))])
     lift = Claim(
-        names[1][0], f"{LIFT}: " + "; ".join(texts) + f"; final-success margin on other tasks: {rest}", names[1][1],
+        names[1][0], f"{LIFT} margin − mean margin on {', '.join(others)}: " + " / ".join(texts), names[1][1],
         judged(checks, gaps, set(tasks), stale),
-        speed_rule(f"on {LIFT}") + f", and its final-success margin over the best other agent is larger on {LIFT} "
-        f"than on every other task; {air_note(measured.overall)}")
-    return [overall, lift, lifting_claim(final, measured.overall, gaps, stale, last_n, names[2])]
+        comparison_rule(f"its margin on {LIFT} less its mean margin on the other tasks (a contrast of the tasks' "
+                        "means; the ceiling judged on nicol_lift; against the paper's baseline that learns the "
+                        "tasks: against visual_baseline, which learns next to nothing anywhere, the margin would be "
+                        f"{OURS}'s own level)", LIFT_BASELINES)
+        + f"; {air_note(measured.overall)}")
+    return [overall, lift]
+
+
+def added_claim(measured: Grid, other: str, gaps: list[str], stale: set[str], floors: report.Floors) -> Claim:
+    """An added arm's row (not in the paper): OURS against `other` (multimodal_baseline; the λ = 0 ablation), the
+    mean over the tasks both ran, `PRIMARY` deciding."""
+    tasks = [t for t in protocol.TASKS if (t, OURS) in measured.figures and (t, other) in measured.figures]
+    what = "the λ = 0 ablation: where a gain comes from" if other == ABLATION else "the multimodal baseline"
+    name = f"(a, added arm: {what}) {OURS} learns faster than {other}"
+    paper = "not tested (the paper has no λ = 0 agent)" if other == ABLATION else \
+        "not compared in the paper (its baselines are proprio and visual)"
+    if not tasks:
+        return Claim(name, "—", paper, f"{NOT_MEASURED}: no {OURS} run beside an {other} run", "")
+    checks, texts = comparisons(measured, tasks, (other,), share=True)
+    return Claim(name, "mean over tasks: " + texts[0] + f"; {floors_text(floors, tasks)}", paper,
+                 judged(checks, gaps, set(tasks), stale),
+                 comparison_rule("the mean over tasks (env steps as a share of each run's budget)", (other,))
+                 + f"; {air_note(measured.overall)}")
 
 
 def lifts(final_air: np.ndarray, overall: bool) -> int:
@@ -338,34 +447,81 @@ def lifts(final_air: np.ndarray, overall: bool) -> int:
     return int((final_air >= LIFTS_OVERALL).sum()) if overall else protocol.seeds_that_lift(final_air)
 
 
-def lifting_claim(final: dict[tuple[str, str], np.ndarray], overall: Sequence[str], gaps: list[str], stale: set[str],
-                  last_n: int, name: tuple[str, str]) -> Claim:
-    """Claim (a) on lifting, by seeds: OURS's seeds that lift (`lifts`) against the other agent with the largest
-    share of lifting seeds on nicol_lift, by Fisher's exact test; each share with its Wilson 95 % interval."""
-    agents = [a for a in AGENTS if (LIFT, a) in final]
-    counted_seeds = {a: (lifts(final[LIFT, a], a in overall), final[LIFT, a].size) for a in agents}
-    share = {a: f"{a} {k}/{n} {stats.interval_text(*stats.wilson_interval(k, n))}"
-             for a, (k, n) in counted_seeds.items()}
-    others = [a for a in agents if a not in (OURS, ABLATION)]
-    rule = (f"a seed lifts when its success over air goals over its last {last_n} epochs is ≥ {LIFTS} (runs "
-            f"without {report.AIR}: overall success ≥ {LIFTS_OVERALL}); Fisher's exact test (two-sided) of {OURS}'s "
-            f"lifting seeds against those of the other agent with the largest share: favours when p < {ALPHA} and "
-            f"{OURS}'s share is larger, against when p < {ALPHA} and smaller; intervals: Wilson 95 % of each share")
-    if OURS not in counted_seeds or not others:
-        return Claim(name[0], "—", name[1], f"{NOT_MEASURED}: no {OURS} run beside another agent's on {LIFT}", rule)
-    best = max(others, key=lambda a: counted_seeds[a][0] / counted_seeds[a][1])
-    (k, n), (k_b, n_b) = counted_seeds[OURS], counted_seeds[best]
-    p = stats.fisher_p(k, n, k_b, n_b)
-    check = UNCLEAR if p >= ALPHA else FAVOURS if k / n > k_b / n_b else AGAINST
-    ours = f"lifting seeds: {'; '.join(share.values())}; Fisher {OURS} vs {best}: p = {p:.3g}"
-    return Claim(name[0], ours, name[1], judged([check], gaps, {LIFT}, stale), rule)
+def lifting_rule(last_n: int, others: Sequence[str], protocol_name: str) -> str:
+    """The words of a lifting-seeds claim."""
+    holm = f", Holm over the {len(others)} comparisons" if len(others) > 1 else ""
+    return (f"{protocol_name}; a seed lifts when its success over air goals over its last {last_n} epochs is ≥ "
+            f"{LIFTS} (runs without {report.AIR}: overall success ≥ {LIFTS_OVERALL}); pre-registered: Fisher's exact "
+            f"test (two-sided) of {OURS}'s lifting seeds against those of {' and of '.join(others)}{holm}: favours "
+            f"when p < {ALPHA} and {OURS}'s share is larger, against when p < {ALPHA} and smaller; intervals: "
+            "Wilson 95 % of each share")
+
+
+def seeds_lifting(final: dict[str, np.ndarray], overall: Sequence[str], ours: str, others: Sequence[str],
+                  ) -> tuple[list[str], str]:
+    """(checks, text) of `ours`'s lifting seeds against each of `others` (agent -> final air success per seed),
+    Fisher's exact test, Holm over `others`."""
+    counted_seeds = {a: (lifts(v, a in overall), v.size) for a, v in final.items()}
+    (k, n) = counted_seeds[ours]
+    p = [stats.fisher_p(k, n, *counted_seeds[o]) for o in others]
+    adjusted = stats.holm(p)
+    checks = [UNCLEAR if q >= ALPHA else FAVOURS if k / n > counted_seeds[o][0] / counted_seeds[o][1] else AGAINST
+              for o, q in zip(others, adjusted)]
+    share = "; ".join(f"{a} {h}/{m} {stats.interval_text(*stats.wilson_interval(h, m))}"
+                      for a, (h, m) in counted_seeds.items())
+    tests = "; ".join(f"Fisher vs {o}: p = {q:.3g} (Holm {a:.3g})" for o, q, a in zip(others, p, adjusted))
+    return checks, f"lifting seeds: {share}; {tests}"
+
+
+def lifting_claim(measured: Grid, gaps: list[str], stale: set[str], last_n: int) -> Claim:
+    """Claim (a) on lifting under held starts (the curves grid): OURS's seeds that lift against the paper's
+    baselines'."""
+    name = f"(a) more of {OURS}'s seeds lift than of the paper's baselines (held starts)"
+    paper = "especially on lifting (Fig. 4)"
+    rule = lifting_rule(last_n, PAPER_BASELINES, "the curves grid, HER's held starts")
+    agents = [a for a in AGENTS if (LIFT, a) in measured.figures]
+    if OURS not in agents or not set(PAPER_BASELINES) <= set(agents):
+        return Claim(name, "—", paper, f"{NOT_MEASURED}: no {OURS} run beside the paper's baselines' on {LIFT}", rule)
+    final = {a: measured.figures[LIFT, a][FINAL][0] for a in agents}
+    checks, text = seeds_lifting(final, measured.overall, OURS, PAPER_BASELINES)
+    return Claim(name, text, paper, judged(checks, gaps, {LIFT}, stale), rule)
+
+
+def plain_claims(plain_dir: str, last_n: int, stale: set[str]) -> list[Claim]:
+    """Lifting without held starts (the plain protocol, `--exploration-starts 0`; PLAIN/nicol_lift/<agent>, as
+    `python -m experiments.paper.curves --tasks nicol_lift --exploration-starts 0` writes it): OURS, and the
+    multimodal baseline as an added arm, each against proprio_baseline's lifting seeds. A run that is not of the
+    plain protocol (its config's exploration_starts ≠ 0) is refused as missing."""
+    loaded = load_grid(plain_dir, (LIFT,))
+    held = [f"{LIFT}/{a} ({plain_dir}) is not of the plain protocol" for (_, a), run in loaded.items()
+            if run is not None and run["config"].get("train", {}).get("exploration_starts") != 0]
+    runs = {key: None if run is None or any(f"/{key[1]} " in h for h in held) else run for key, run in loaded.items()}
+    rule_name = f"{plain_dir}/{LIFT}, the plain protocol (no held starts, `--exploration-starts 0`)"
+    rows = []
+    for ours, added in ((OURS, ""), ("multimodal_baseline", "added arm: ")):
+        name = f"(a, {added}plain protocol) {ours} lifts where {PROPRIO} cannot"
+        gaps = [g for a in (ours, PROPRIO) if (g := gap(f"{LIFT}/{a} ({plain_dir})", runs[LIFT, a],
+                                                        protocol.budget(runs[LIFT, a]) if runs[LIFT, a] else 0))]
+        gaps = [h for h in held if f"/{ours} " in h or f"/{PROPRIO} " in h] or gaps
+        rule = lifting_rule(last_n, (PROPRIO,), rule_name).replace(f"{OURS}'s", f"{ours}'s")
+        paper = "especially on lifting (Fig. 4; the paper trains without held starts)" if not added else \
+            "not compared in the paper"
+        if runs[LIFT, ours] is None or runs[LIFT, PROPRIO] is None:
+            rows.append(Claim(name, "—", paper, judged([], gaps, {LIFT}, stale), rule))
+            continue
+        curves = {a: judged_curve(runs[LIFT, a]) for a in (ours, PROPRIO)}
+        final = {a: report.final_per_seed(c, last_n) for a, (c, _) in curves.items()}
+        checks, text = seeds_lifting(final, [a for a, (_, o) in curves.items() if o], ours, (PROPRIO,))
+        rows.append(Claim(name, text, paper, judged(checks, gaps, {LIFT}, stale), rule))
+    return rows
 
 
 # ----- (b) noise -------------------------------------------------------------------------------------
 
 
-def noise_claims(noise_dir: str, stale: set[str]) -> list[Claim]:
-    """Claim (b): steadier and higher than both baselines at κ = 10 and 15 %."""
+def noise_claims(noise_dir: str, stale: set[str], floors: report.Floors) -> list[Claim]:
+    """Claim (b): steadier (`protocol.residual_spread`, "not measured" where curves still move:
+    `protocol.trending`) and higher than both baselines at κ = 10 and 15 %; Holm over the 4 checks of each."""
     found, budgets = protocol.load_noise_curves(noise_dir) if os.path.isdir(noise_dir) else ({}, {})
     agents = (OURS, *BASELINES)
     gaps = [f"{a} missing" for a in agents if a not in budgets]
@@ -374,13 +530,18 @@ def noise_claims(noise_dir: str, stale: set[str]) -> list[Claim]:
     gaps += [f"{os.path.basename(run_dir)} short ({int(curve.epoch[-1])} of {budgets[curve.label]} epochs)"
              for run_dir, curve in measured.items() if curve.epoch[-1] < budgets[curve.label]]
     tasks = {report.load_run(run_dir)["env"] for run_dir in measured}
+    floor = report.floor_text(floors, protocol.NOISE_ENV)
+    moving = [f"{a} at κ {k:.0%} (slope {protocol.trend_text(found[k, a], protocol.LAST_N[k])})"
+              for k in NOISE_KAPPAS for a in agents if (k, a) in found
+              and protocol.trending(found[k, a], protocol.LAST_N[k])]
     measures = (
-        ("steadier", "each run's std of its success over the last N epochs", protocol.steadiness, False, 1),
+        ("steadier", "each run's residual std around its own fitted linear trend over the last N epochs",
+         protocol.residual_spread, False, 1),
         ("higher", "each run's mean success over the last N epochs", report.final_per_seed, True, 0),
     )
     rows = []
     for word, what, measure, positive, column in measures:
-        checks, ours, paper = [], [], []
+        diffs, labels, ours, paper = [], [], [], []
         for k in NOISE_KAPPAS:
             paper.append(f"{k:.0%}: " + " vs ".join(f"{protocol.PAPER[k][a][column]:.3f}" for a in agents))
             if (k, OURS) not in found:
@@ -388,46 +549,66 @@ def noise_claims(noise_dir: str, stale: set[str]) -> list[Claim]:
             mine = measure(found[k, OURS], protocol.LAST_N[k])
             cells = [f"{mine.mean():.4f}"]
             for b in (b for b in BASELINES if (k, b) in found):
-                text, low, high = difference([mine], [measure(found[k, b], protocol.LAST_N[k])], 4)
-                checks.append(compare(low, high, positive))
-                cells.append(f"− {b} {text}")
+                diffs.append(stats.welch_difference([mine], [measure(found[k, b], protocol.LAST_N[k])]))
+                labels.append((k, b))
+                cells.append(f"− {b} {difference_text(diffs[-1], 4)}")
             ours.append(f"{k:.0%}: " + "; ".join(cells))
+        checks = holm_checks(diffs, positive, [False] * len(diffs))
+        adjusted = stats.holm([d.p for d in diffs]) if diffs else []
+        ours_text = " / ".join(ours) or "—"
+        if diffs:
+            ours_text += "; Holm p: " + ", ".join(f"{k:.0%} {b} {q:.3g}" for (k, b), q in zip(labels, adjusted))
+        ours_text += f"; {protocol.NOISE_ENV} {floor}"
+        row_gaps = gaps + ([f"curves still move over the window ({'; '.join(moving)})"] if moving and not positive
+                           else [])
+        rule = (f"per κ and baseline: {OURS} − baseline over runs of {what} (N = "
+                f"{', '.join(str(protocol.LAST_N[k]) for k in NOISE_KAPPAS)}), Welch's 95 % t interval and p, Holm "
+                f"over the {2 * len(BASELINES)} checks: favours when p < {ALPHA} and {OURS}'s is "
+                f"{'larger' if positive else 'smaller'}")
+        if not positive:
+            rule += ("; not measured while an agent's curve still moves over the window (the Student-t interval "
+                     "over its runs of their fitted slopes excludes 0): a spread around a climb is the climb's")
         rows.append(Claim(
-            f"(b) under 10 and 15 % noise {OURS}'s success is {word} than both baselines'",
-            " / ".join(ours) or "—", " / ".join(paper) + f" ({', '.join(agents)}; Table II "
-            + ("±, \"mean standard deviation\")" if column else "means)"),
-            judged(checks or [UNCLEAR], gaps, tasks, stale),
-            f"per κ and baseline: bootstrap 95 % interval of {OURS} − baseline over runs of {what} (N = "
-            f"{', '.join(str(protocol.LAST_N[k]) for k in NOISE_KAPPAS)}) {'above' if positive else 'below'} 0"))
+            f"(b) under 10 and 15 % noise {OURS}'s success is {word} than both baselines'", ours_text,
+            " / ".join(paper) + f" ({', '.join(agents)}; Table II " + ("±, \"mean standard deviation\")" if column
+                                                                          else "means)"),
+            judged(checks or [UNCLEAR], row_gaps, tasks, stale), rule))
     return rows
 
 
 # ----- (c) transfer ----------------------------------------------------------------------------------
 
 
-def transfer_claims(transfer_dir: str, stale: set[str]) -> list[Claim]:
-    """Claim (c): fewer env steps to 0.5 and a larger AUC from nicol_slide's representation than from scratch."""
+def transfer_claims(transfer_dir: str, stale: set[str], floors: report.Floors) -> list[Claim]:
+    """Claim (c): a larger AUC from nicol_slide's representation than from scratch (primary), env steps to each of
+    `protocol.THRESHOLDS` reported."""
     runs = {name: grid.loaded(os.path.join(transfer_dir, name)) for name in ("transfer", "scratch", "source")}
     gaps = [g for name in ("transfer", "scratch") if (g := gap(name, runs[name], protocol.budget(runs[name])
                                                              if runs[name] else 0))]
     tasks = {run["env"] for run in runs.values() if run} | ({protocol.SOURCE_ENV} if runs["transfer"] else set())
     paper = "learns faster with the slide representation (Fig. 6; no figure given)"
+    name = f"(c) reduced lift learns faster from {protocol.SOURCE_ENV} (transfer − scratch)"
+    rule = (f"primary measure {PRIMARY} (each seed's mean success over all epochs), transfer − scratch over seeds, "
+            f"Welch's 95 % t interval: favours when it lies above 0, against when below; env steps to "
+            f"{' and '.join(f'{t:g}' for t in protocol.THRESHOLDS)} reported, not deciding; the ceiling as in (a)")
     if runs["transfer"] is None or runs["scratch"] is None:
-        return [Claim(f"(c) reduced lift learns faster from {protocol.SOURCE_ENV} ({what})", "—", paper,
-                      judged([], gaps, tasks, stale), "") for what in ("env steps to 0.5", "AUC")]
-    arms = {name: protocol.seed_measures(report.curves([runs[name]])[0]) for name in ("transfer", "scratch")}
-    rows = []
-    for key, positive, digits in (("env steps to 0.5", False, 0), ("AUC", True, 3)):
-        (a, a_cut), (b, b_cut) = arms["transfer"][key], arms["scratch"][key]
-        text, low, high = difference([a], [b], digits)
+        return [Claim(name, "—", paper, judged([], gaps, tasks, stale), rule)]
+    arms = {arm: protocol.seed_measures(report.curves([runs[arm]])[0]) for arm in ("transfer", "scratch")}
+    texts, checks = [], []
+    for key, (a, a_cut) in arms["transfer"].items():
+        b, b_cut = arms["scratch"][key]
+        diff, digits = stats.welch_difference([a], [b]), 3 if key == PRIMARY else 0
         censored = a_cut.sum() + b_cut.sum()
         note = f" ({censored} of {a.size + b.size} seeds censored at their run's env steps)" if censored else ""
-        rows.append(Claim(
-            f"(c) reduced lift learns faster from {protocol.SOURCE_ENV} ({key}, transfer − scratch)",
-            f"{a.mean():,.{digits}f} − {b.mean():,.{digits}f} = {text}{note}", paper,
-            judged([compare(low, high, positive)], gaps, tasks, stale),
-            f"bootstrap 95 % interval of transfer − scratch over seeds {'below' if not positive else 'above'} 0"))
-    return rows
+        ceiling = key == PRIMARY and min(a.mean(), b.mean()) >= 1.0 - CEILING
+        texts.append(f"{key} {a.mean():,.{digits}f} − {b.mean():,.{digits}f} = {difference_text(diff, digits)}{note}"
+                     + (" (primary)" if key == PRIMARY else ""))
+        if key == PRIMARY:
+            checks.append(check(diff, diff.p, True, ceiling))
+    target = runs["transfer"]["env"]
+    floor = report.floor_text(floors, LIFT if target.startswith(LIFT) else target)
+    return [Claim(name, "; ".join(texts) + f"; {target} over all goals, {floor}", paper,
+                  judged(checks, gaps, tasks, stale), rule)]
 
 
 # ----- the report ------------------------------------------------------------------------------------
@@ -478,58 +659,77 @@ def count(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
-def time_report(experiments: dict[str, list[dict]], old: set[str]) -> str:
-    """What the runs behind the claims took: per experiment (name -> its runs, `runs_below`) and per machine, the
-    sum of each run's last `wall_time_with_compile` (training and compiling, summed over its processes; `wall_time`,
-    compiling not counted, where metrics.csv predates that column: `report.last_time`), for the runs on today's
-    physics; the runs whose folders are in `old` (on other physics: `on_other_physics`) apart, or a line that
-    there are none."""
-    per_experiment, per_machine, other, others, without_compile = [], {}, 0.0, 0, 0
+def time_report(experiments: dict[str, list[dict]], old: set[str], root: str = report.RESULTS) -> str:
+    """What the runs behind the claims held, for the runs on today's physics (those whose folders are in `old`, on
+    other physics, `on_other_physics`, apart): the machine time, GPU time the runs held (`report.machine_time`:
+    wall time × the machine's GPUs, runs that shared a GPU counted once, by the experiments' figures.json records
+    under `root`), per experiment (name -> its runs, `runs_below`) and in all; beside it, labelled, the summed
+    process time (each run's last `wall_time_with_compile`, or `wall_time` where metrics.csv predates it), per
+    machine as config.json records it."""
+    groups = report.gpu_sharing(root) if os.path.isdir(root) else []
+    per_experiment, per_machine, counted_runs, other, without_compile = [], {}, [], [], 0
     for name, runs in experiments.items():
-        stale = {run["dir"] for run in runs} & old
-        others += len(stale)
-        total = 0.0
-        for run in runs:
+        today = [run for run in runs if run["dir"] not in old]
+        other += [run for run in runs if run["dir"] in old]
+        counted_runs += today
+        held, summed = report.machine_time(today, root, groups)
+        per_experiment.append(f"{name} {hours(held)} ({count(len(today), 'run')}; processes {hours(summed)})")
+        for run in today:
             seconds, with_compile = report.last_time(run)
-            if run["dir"] in stale:
-                other += seconds
-                continue
-            total += seconds
             without_compile += not with_compile
-            machines = run["config"].get("hardware") or ["not recorded"]
-            key = " then ".join(machines)
+            key = " then ".join(run["config"].get("hardware") or ["not recorded"])
             per_machine[key] = per_machine.get(key, 0.0) + seconds
-        per_experiment.append(f"{name} {hours(total)} ({count(len(runs) - len(stale), 'run')})")
+    held, summed = report.machine_time(counted_runs, root, groups)
     machines = "; ".join(f"{machine}: {hours(seconds)}" for machine, seconds in sorted(per_machine.items()))
-    return (f"Time of the runs behind these claims, on today's physics: {', '.join(per_experiment)}; in all "
-            f"{hours(sum(per_machine.values()))} (per machine, as config.json records it: {machines or 'none'}). "
-            "Each run counts its last `wall_time_with_compile`: training and compiling, summed over its processes"
+    return (f"Machine time of the runs behind these claims, on today's physics: {hours(held)} of GPU time held "
+            f"({', '.join(per_experiment)}). Machine time is wall time × the GPUs of the processes' machine, runs "
+            "that shared a GPU counted once: config.json and metrics.csv record neither start times nor neighbours, "
+            "so each experiment's figures.json records which runs trained k at a time on one GPU (\"gpu_sharing\"), "
+            "and such a group counts max(its summed time / k, its longest run), a run in no group its own time. "
+            f"Summed process time, for comparison: {hours(summed)} (per machine, as config.json records it: "
+            f"{machines or 'none'}), each run's last `wall_time_with_compile`: training and compiling, summed over "
+            "its processes"
             + (f"; runs older than that column ({without_compile}) count their `wall_time`, compiling not counted"
                if without_compile else "")
-            + (f". Runs on other physics, not counted: {hours(other)} ({count(others, 'run')})." if others
-               else ". No run is on other physics."))
+            + (f". Runs on other physics, not counted: {hours(sum(report.last_time(r)[0] for r in other))} of process "
+               f"time ({count(len(other), 'run')})." if other else ". No run is on other physics."))
 
 
-def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, stale: set[str], last_n: int,
-                  command: str) -> tuple[str, str]:
+def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, plain_dir: str, stale: set[str],
+                  last_n: int, command: str, floors: report.Floors) -> tuple[str, str]:
     """(results/claims.md's text, the README's block: `readme_block`)."""
-    runs = {folder: runs_below(folder) for folder in (curves_dir, noise_dir, transfer_dir)}
+    folders = (curves_dir, noise_dir, transfer_dir, plain_dir)
+    runs = {folder: runs_below(folder) for folder in folders}
     old = {run["dir"] for run in on_other_physics([run for found in runs.values() for run in found])}
     other = {folder: per_task([run for run in found if run["dir"] in old]) for folder, found in runs.items()}
-    rows = [*learning_claims(load_grid(curves_dir), last_n, stale | set(other[curves_dir])),
-            *noise_claims(noise_dir, stale | set(other[noise_dir])),
-            *transfer_claims(transfer_dir, stale | set(other[transfer_dir]))]
+    rows = [*learning_claims(load_grid(curves_dir), last_n, stale | set(other[curves_dir]), floors),
+            *plain_claims(plain_dir, last_n, stale | set(other[plain_dir])),
+            *noise_claims(noise_dir, stale | set(other[noise_dir]), floors),
+            *transfer_claims(transfer_dir, stale | set(other[transfer_dir]), floors)]
     found = "; ".join(f"{folder}: {counted(tasks)}" for folder, tasks in other.items() if tasks)
-    times = time_report({"learning curves": runs[curves_dir], "noise": runs[noise_dir],
-                         "transfer": runs[transfer_dir]}, old)
+    times = time_report({"learning curves": runs[curves_dir], "lifting, plain protocol": runs[plain_dir],
+                         "noise": runs[noise_dir], "transfer": runs[transfer_dir]}, old)
     text = "\n".join([
         "# The paper's three claims, measured",
         "",
-        f"From the run folders {curves_dir}, {noise_dir} and {transfer_dir}. Intervals: 95 %, a Student-t "
-        "interval over seeds for a figure (clipped to [0, 1], the range of a success rate), a bootstrap over seeds "
-        "(10,000 resamples, fixed seed) for a difference. Verdict rule (experiments/paper/claims.py): every check "
-        "favours the claim: reproduced; none favours and one is against: reversed; otherwise not reproduced; a run "
-        "missing or short: not measured.",
+        f"From the run folders {curves_dir}, {plain_dir}, {noise_dir} and {transfer_dir}, and the tasks' floors in "
+        f"{report.FLOORS} (what a policy that does nothing scores: `python -m experiments.probes.floors`).",
+        "",
+        "Method, fixed before reading the runs (experiments/paper/claims.py). Every claim names its comparison: "
+        f"Fig. 4's are {OURS} against the paper's baselines ({' and '.join(PAPER_BASELINES)}); "
+        f"{' and '.join(ADDED)} (λ = 0) are our added arms, each on its own row. Every comparison of learning speed "
+        f"has one primary measure, {PRIMARY}; final success and env steps to 0.5 and 0.9 are reported and do not "
+        f"decide. Where several checks decide one claim, Holm's correction holds them at α = {ALPHA}. A success "
+        f"measure where both arms are within {CEILING} of 1 is at the ceiling and does not decide. A figure's "
+        "interval is Student-t over seeds (clipped to [0, 1]); a difference's is Welch's t over seeds "
+        "(`experiments.stats.welch_difference`): with 5 seeds an arm a percentile bootstrap covers about 87 % "
+        "where it claims 95, Welch's interval 95 % within 2.5 points on normal, bounded and skewed per-seed "
+        "figures (success rates near 1, Beta, exponential; tests/experiments/test_stats.py simulates it). "
+        "\"Learned\": every seed clearly above its task's floor (a one-sided binomial test of its last "
+        f"{last_n} epochs' eval episodes, Holm over the run's seeds). Verdicts: every deciding check favours: "
+        "reproduced; none favours and one is against (for a comparison: its primary measure's interval lies "
+        "against the claim): reversed; otherwise not reproduced; a run missing or short, or a steadiness measured "
+        "on curves that still climb: not measured.",
         "",
         claims_table(rows),
         "",
@@ -599,6 +799,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--curves", default=os.path.join("results", "curves"), help="the curves grid's folder")
     parser.add_argument("--noise", default=os.path.join("results", "noise"), help="the noise experiment's folder")
     parser.add_argument("--transfer", default=os.path.join("results", "transfer"), help="the transfer folder")
+    parser.add_argument("--plain", default=os.path.join("results", f"curves-{grid.PLAIN}"), help="the curves "
+                        "grid's folder of nicol_lift under the plain protocol (`--exploration-starts 0`)")
+    parser.add_argument("--floors", default=report.FLOORS, help="the folder of the tasks' floors "
+                        "(python -m experiments.probes.floors)")
     parser.add_argument("--out", default=os.path.join("results", "claims.md"), help="the Markdown file written")
     parser.add_argument("--stale", default="", help="comma list of tasks whose runs to count as made on other "
                         "physics than today's besides those whose config.json says so (their verdicts say so)")
@@ -621,13 +825,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         runfiles.check_output_dir(os.path.dirname(args.out), "--out")  # before the work, not after it
     except ValueError as err:
         return cli.exit_code(err)
-    options = [f"--curves {args.curves}", f"--noise {args.noise}", f"--transfer {args.transfer}", f"--out {args.out}"]
+    options = [f"--curves {args.curves}", f"--noise {args.noise}", f"--transfer {args.transfer}"]
+    options += [f"--plain {args.plain}"] * (args.plain != build_parser().get_default("plain"))
+    options += [f"--floors {args.floors}"] * (args.floors != report.FLOORS) + [f"--out {args.out}"]
     options += [f"--stale {args.stale}"] * bool(args.stale) + [f"--last-n {args.last_n}"] * (args.last_n != 10)
     options += [f"--readme {args.readme}"] * bool(args.readme)
     try:
         previous = previous_section(args.previous or args.out, start=bool(args.previous))
-        text, block = claims_report(args.curves, args.noise, args.transfer, stale, args.last_n,
-                                    " ".join([PROG, *options]))
+        text, block = claims_report(args.curves, args.noise, args.transfer, args.plain, stale, args.last_n,
+                                    " ".join([PROG, *options]), report.load_floors(args.floors))
         text += f"\n{previous}" if previous else ""
         if args.readme:
             write_readme(args.readme, block)

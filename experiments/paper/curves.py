@@ -47,8 +47,9 @@ resumed or repeated where its program is cached compiles in less time; its `wall
 Then, from whatever runs have epochs, it writes into OUT `curves.png` and `curves.csv` (one panel
 per task, one line per agent: eval success against env steps per seed, mean ± std over seeds;
 `experiments/report.py`) and `table.md` (final success, mean ± std over seeds of each seed's last
-`--last-n` epochs, per agent and task, each run's wall time with its compilation, their total, and
-the runs missing or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
+`--last-n` epochs, per agent and task, with how many seeds are above the task's floor and the floors below; each
+run's wall time with its compilation, the machine time they held and their summed time, and the runs missing
+or unfinished; a run whose metrics.csv predates `wall_time_with_compile` shows its
 `wall_time`, marked "*": compilation not counted; a stale run's cell is marked "†", and a line below
 the table counts them; another names the runs resumed with an empty replay buffer, `grid.fresh_buffer_note`,
 and the epochs a run's metrics.csv lacks; last, the command that regenerates them, `regenerate_command`). `--report`
@@ -56,10 +57,12 @@ trains nothing and writes only these, e.g. from run folders whose checkpoints we
 none: .gitignore).
 
 Exit codes as experiments.run: 0 done; 2 bad option, config or checkpoint (one `error: ...`
-line, nothing written), or a stale run (one `error: ...` line, nothing trained; the table is
-written), or a run folder with a damaged file (one line naming it: the experiment stops rather than take the
-run for one never trained); 3 diverged; 4 the disk (a run's write, or table.md or the figure); 130 and 143
-stopped by SIGINT and SIGTERM (a checkpoint was saved; Ctrl-C before a run trains: nothing saved).
+line, nothing written), or a stale run (one `error: ...` line, nothing trained), or a run folder with a damaged file
+(one line naming it: the experiment stops rather than take the run for one never trained); 3 diverged; 4 the disk (a
+run's write, or table.md or the figure); 6 out of device memory; 130 and 143 stopped by SIGINT and SIGTERM (a
+checkpoint was saved; Ctrl-C before a run trains: nothing saved). A refusal or a failed run ends the command with its
+error as the last line (with `--ray`, the line listing the cells that failed): nothing is plotted or tabled after it;
+`--report` writes the table and figure from the runs that have epochs.
 """
 
 from __future__ import annotations
@@ -125,17 +128,21 @@ def seconds(run: dict) -> str:
     return f"{time:,.0f} s" + ("" if with_compile else "*")
 
 
-def cell(run: dict, curve: report.Curve, epochs: int, last_n: int) -> str:
-    """Final success (mean ± std over seeds of each seed's last `last_n` epochs), the run's wall
-    time (`seconds`), and how far it got when it is unfinished."""
+def cell(run: dict, curve: report.Curve, epochs: int, last_n: int, floors: report.Floors) -> str:
+    """Final success (mean ± std over seeds of each seed's last `last_n` epochs), how many seeds are clearly above
+    the task's floor (`protocol.above_floor`), the run's wall time (`seconds`), and how far it got when it is
+    unfinished."""
     done = int(run["epoch"][-1])
     progress = "" if done >= epochs else f", epoch {done} of {epochs}"
-    return f"{report.final_cell(curve, last_n)}, {seconds(run)}{progress}"
+    above = protocol.above_floor(run, floors, last_n)
+    return f"{report.final_cell(curve, last_n)}{f' ({above})' if above else ''}, {seconds(run)}{progress}"
 
 
-def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str] = ()) -> str:
-    """Markdown: one row per agent, one column per task; a run without epochs is "—", one of `stale` (arm
-    names) is marked `grid.STALE`."""
+def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str] = (),
+                  floors: report.Floors | None = None) -> str:
+    """Markdown: one row per agent, one column per task, then the tasks' floors (`report.load_floors`, over all
+    goals); a run without epochs is "—", one of `stale` (arm names) is marked `grid.STALE`."""
+    floors = report.load_floors() if floors is None else floors
     tasks = {arm.given["env"]: arm.epochs for arm in arms}
     agents = list(dict.fromkeys(arm.given["agent"] for arm in arms))
     by_dir = {c.run_dir: c for c in report.curves(list(runs.values()))}
@@ -146,8 +153,9 @@ def results_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale
         for arm in (a for a in arms if a.given["agent"] == agent):
             run = runs.get(arm.name)
             mark = grid.STALE if arm.name in stale else ""
-            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n) + mark)
+            cells.append("—" if run is None else cell(run, by_dir[run["dir"]], arm.epochs, last_n, floors) + mark)
         rows.append(cells)
+    rows.append(["floor: a policy that does nothing", *(report.floor_value(floors, task) for task in tasks)])
     return report.markdown_table(head, rows)
 
 
@@ -185,7 +193,9 @@ def lift_note(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> list[s
     finals = [(agent, run["success_air"][-last_n:].mean(axis=0)) for agent, run in cells]
     parts = [f"{agent} {final.mean():.3f}, {protocol.seeds_that_lift(final)} of {final.size} seeds lift"
              for agent, final in finals]
-    return [f"{LIFT}, air goals alone (evaluation from reset; a policy that never lifts scores {floor:.3f}): final "
+    idle = report.floor_value(report.load_floors(), LIFT, "air")
+    return [f"{LIFT}, air goals alone (evaluation from reset; a policy that never lifts scores {floor:.3f}, one that "
+            f"does nothing {idle}): final "
             f"success over the last {last_n} epochs and the seeds that lift (their air-goal success ≥ "
             f"{protocol.LIFTS} there): " + "; ".join(parts) + ".", ""]
 
@@ -200,12 +210,15 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         return None
     stale = grid.stale_runs(arms, runs, today)
     grid.write_figure(report.curves(list(runs.values())), os.path.join(out, "curves"), title)
-    total = sum(report.last_time(r)[0] for r in runs.values())
+    held, total = report.machine_time(list(runs.values()))
     return "\n".join([
         f"# {title}",
         "",
-        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; "
-        "then the run's wall time (its last `wall_time_with_compile`, compilation included; * its last "
+        f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs, "
+        "with how many seeds are clearly above the task's floor (the last row: what a policy that does nothing "
+        "scores, results/floors; a one-sided binomial test of each seed's successes in those epochs' eval episodes, "
+        "Holm over the run's seeds, α = 0.05); then the run's wall time (its last `wall_time_with_compile`, "
+        "compilation included; * its last "
         "`wall_time`, compilation not counted, where metrics.csv predates that column).",
         "",
         results_table(arms, runs, last_n, stale),
@@ -213,7 +226,9 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         *lift_note(arms, runs, last_n),
         *stale_note(stale, len(runs)),
         *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
-        f"Total wall time of the runs: {grid.duration(total)}.",
+        f"Machine time the runs held: {grid.duration(held)} of GPU time (wall time × the GPUs of their machine, runs "
+        "that shared a GPU counted once as results/*/figures.json records them, `report.machine_time`); their summed "
+        f"process time: {grid.duration(total)}.",
         "",
         grid.gaps(arms, runs),
         "",
@@ -236,7 +251,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         blocks = [block for cell in cells for block in grid.blocks(cell)]
     except ConfigError as err:
         return cli.exit_code(err)
-    code, envs = 0, None
+    envs = None
     try:
         if not args.report:
             envs = grid.make_envs(blocks)
@@ -245,6 +260,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(grid.DRY_RUN)
                 return 0
             code = grid.train_arms(blocks, envs, args, out)
+            if code:  # a refusal or a failed run ends the command on its error line (`--report` writes the table)
+                return code
         variant = f", {LIFT} without held starts" if out.endswith(grid.PLAIN) else ""
         title = f"Eval success against env steps per seed, mean ± std over seeds{variant}"
         if multihost.is_main():  # one process writes the results
@@ -254,9 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             grid.write_table(out, plot_results(out, cells, title, args.last_n, today,
                                                regenerate_command(args, rest, out)))
     except cli.FAILURES as err:  # a damaged run folder (exit 2), a failed write of the results (exit 4)
-        failed = cli.exit_code(err)
-        return code or failed
-    return code
+        return cli.exit_code(err)
+    return 0
 
 
 if __name__ == "__main__":

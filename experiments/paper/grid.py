@@ -38,7 +38,7 @@ from bidal_jax.config import (
     recorded,
     resolve,
 )
-from bidal_jax.run import checkpoint, rundir, runfiles, validate
+from bidal_jax.run import checkpoint, memory, rundir, runfiles, validate
 from bidal_jax.run.checkpoint import CheckpointError
 from experiments import cli, cluster, report
 from experiments.paper.protocol import BLOCK_SECONDS, DEFAULT_SEEDS, EPOCHS, TASKS
@@ -294,6 +294,8 @@ SECONDS = {
     "nicol_lift": {"image": (17.68, 81.2), "image_baseline": (13.06, 181.6), "proprio": (4.69, 41.6)},
 }
 SECONDS["nicol_lift_reduced"] = SECONDS["nicol_lift"]  # the transfer target: nicol_lift's preset, not timed apart
+# the ladder's variants of nicol_slide (experiments.paper.ladder): its preset, less proprio; not timed apart
+SECONDS["nicol_slide_ee"] = SECONDS["nicol_slide_ee_obj"] = SECONDS["nicol_slide"]
 
 
 def kind(task: str, agent: str) -> str:
@@ -347,7 +349,7 @@ def duration(seconds: float) -> str:
 
 def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "plan:", named: bool = True) -> str:
     """`heading`, then one `plan_line` per run (after its name when `named`) with its estimated time (`estimate`),
-    then the estimated total and the stale runs' count."""
+    then the estimated total, the machine time the runs with epochs held, and the stale runs' count."""
     statuses = [status(arm, envs[arm.name].physics_id) for arm in arms]
     seconds = [estimate(arm, progress) for arm, progress in zip(arms, statuses)]
     lines = [heading]
@@ -358,6 +360,12 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
         "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, compilation "
         "included)"
     )
+    done = [run for arm in arms if (run := loaded(arm.run_dir))]
+    if done:
+        held, summed = report.machine_time(done)
+        lines.append(f"held so far: {duration(held)} of GPU time by the {len(done)} runs with epochs (wall time × the "
+                     "GPUs of their machine, runs that shared a GPU counted once as results/*/figures.json records "
+                     f"them: `report.machine_time`); their summed process time {duration(summed)}")
     stale_runs = sum(progress.state == "stale" for progress in statuses)
     if stale_runs:
         lines.append(f"stale: {stale_runs} of {len(arms)} runs; training refuses them until their folders are moved "
@@ -400,6 +408,7 @@ def train_cell(payload: tuple[Arm, bool]) -> tuple[int, str | None]:
     it failed, its one line (`cli.failure`), which the driver reports."""
     arm, fresh_buffer = payload
     try:
+        memory.share_gpu()  # before the env puts its model on the GPU: JAX takes what is free of a shared GPU
         train_arm(arm, envs_mjx.make(arm.given["env"], render=arm.config.agent.uses_image), True, fresh_buffer)
     except cli.FAILURES as err:
         return cli.failure(err)

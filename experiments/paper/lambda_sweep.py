@@ -28,7 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from bidal_jax.config import ConfigError, TrainConfig
-from experiments import cli, report, stats
+from experiments import cli, cluster, report, stats
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 
@@ -115,9 +115,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         lambdas = parse_lambdas(args.lambdas)
         arms = grid.checked_arms(make_arms(lambdas, grid.pass_through(rest, PROG), args.out))
+        cluster.prepare_driver(args)
     except ConfigError as err:
         return cli.exit_code(err)
-    code = 0
     try:
         if not args.report:
             envs = grid.make_envs(arms)
@@ -126,12 +126,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(grid.DRY_RUN)
                 return 0
             code = grid.train_arms(arms, envs, args, args.out)
+            if code:  # a refusal or a failed run ends the command on its error line (`--report` writes the table)
+                return code
         runs = {(arm.given["env"], arm.given["intrinsic_lambda"]): run for arm in arms
                 if (run := grid.loaded(arm.run_dir))}
         grid.write_table(args.out, table(lambdas, runs))
     except cli.FAILURES as err:
-        return code or cli.exit_code(err)
-    return code
+        return cli.exit_code(err)
+    return 0
 
 
 if __name__ == "__main__":

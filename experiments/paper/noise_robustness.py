@@ -14,8 +14,11 @@ metrics.csv with `eval_success_seed0..14`), `table.md` (the paper's Table II: pe
 agent, the mean over the 5 runs of each run's mean success over its last N epochs, N = 5 at
 5 % and 30 at 10 and 15 %, ± the std over the runs, beside the paper's figures; a run with fewer
 epochs than its budget (`protocol.budget`: the env and agent preset's, or its config's if more) is marked
-"short run"; then the steadiness of claim (b): each run's std of its success over those N epochs,
-the mean over runs; and the command that regenerates it),
+"short run", and the task's floor, what a policy that does nothing scores (results/floors); then the steadiness
+of claim (b): each run's residual std around its own fitted linear trend over those N epochs, the mean over runs,
+beside the runs' mean slope per epoch with its 95 % interval, "still climbing" where that interval excludes 0 (the
+spread then is not the steadiness the paper compares; `protocol.residual_spread`, `protocol.trending`); and the
+command that regenerates it),
 `curves.png` and `curves.csv` (one panel per κ, one line per agent, mean ± std over the 5 runs).
 `--report` trains nothing and writes only these, from the run folders (results/ keeps no
 checkpoints: training again there would start the runs afresh). `--dry-run` prints the plan, each
@@ -53,12 +56,15 @@ from experiments.paper.protocol import (
     DEFAULT_SEED,
     KAPPAS,
     LAST_N,
+    NOISE_ENV,
     NOISE_EPOCHS,
     PAPER,
     SEGMENTS,
     kappa_dir,
     load_noise_curves,
-    steadiness,
+    residual_spread,
+    trend_text,
+    trending,
 )
 from experiments.paper.protocol import (
     NOISE_AGENTS as AGENTS,
@@ -113,9 +119,10 @@ def window_note(rows: int, reached: int, budget: int, last_n: int) -> str:
     return f" ({window}{lost}" + (f"; short run: {reached} of {budget} epochs" if reached < budget else "") + ")"
 
 
-def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]) -> str:
-    """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper; then the
-    steadiness (`steadiness`, mean over runs) beside the paper's ±. `budgets`: each agent's epochs."""
+def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int], floors: report.Floors) -> str:
+    """Table II beside the paper's: ours (mean ± std over runs of each run's last-N mean) | paper, the task's floor
+    below; then the steadiness (`residual_spread`, mean over runs, with the runs' slope: `trend_text`, marked where
+    `trending`) beside the paper's ±. `budgets`: each agent's epochs."""
     agents = [a for a in AGENTS if any(agent == a for _, agent in curves)]
     head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper"))]
     steady_head = ["κ", "N", *(f"{a} ({whose})" for a in agents for whose in ("ours", "paper's ±"))]
@@ -131,7 +138,9 @@ def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]
                 mean, std, _ = report.final_success(curve, LAST_N[k])
                 note = window_note(len(curve.epoch), int(curve.epoch[-1]), budgets[a], LAST_N[k])
                 cells.append(f"{mean:.3f} ± {std:.4f}{note}")
-                steady.append(f"{steadiness(curve, LAST_N[k]).mean():.4f}")
+                climbing = "; still climbing" if trending(curve, LAST_N[k]) else ""
+                steady.append(f"{residual_spread(curve, LAST_N[k]).mean():.4f} (slope "
+                              f"{trend_text(curve, LAST_N[k])}{climbing})")
             cells.append("{:.3f} ± {:.4f}".format(*PAPER[k][a]))
             steady.append(f"{PAPER[k][a][1]:.4f}")
         rows.append(cells)
@@ -139,8 +148,14 @@ def table(curves: dict[tuple[float, str], report.Curve], budgets: dict[str, int]
     return "\n".join([
         report.markdown_table(head, rows),
         "",
-        "Steadiness: each run's std of its success over the same last N epochs, the mean over runs (paper "
-        "Sec. IV-B compares its ± as \"the mean standard deviation\" of the success rate; it does not say over what).",
+        f"{NOISE_ENV}'s {report.floor_text(floors, NOISE_ENV)}: what a policy that does nothing scores "
+        "(results/floors).",
+        "",
+        "Steadiness: each run's residual std of its success around its own fitted linear trend over the same last N "
+        "epochs, the mean over runs (paper Sec. IV-B compares its ± as \"the mean standard deviation\" of the "
+        "success rate; it does not say over what); beside it the runs' fitted slope, their mean with its Student-t "
+        "95 % interval over runs. \"Still climbing\": that interval excludes 0, so the curves have not levelled off "
+        "in the window and the steadiness is not measured there (claim (b) says so).",
         "",
         report.markdown_table(steady_head, steady_rows),
         "",
@@ -158,7 +173,8 @@ def write_report(out: str) -> str:
     resumed = "\n".join(grid.fresh_buffer_note(configs))
     absent = report.absent_note({os.path.basename(curve.run_dir): curve.epoch for curve in found.values()})
     lost = f"{absent}\n" if absent else ""
-    text = f"{table(found, budgets)}\n{lost}{resumed}Regenerate from the run folders: `{PROG} --report --out {out}`\n"
+    text = (f"{table(found, budgets, report.load_floors())}\n{lost}{resumed}Regenerate from the run folders: "
+            f"`{PROG} --report --out {out}`\n")
     path = os.path.join(out, "table.md")
     with rundir.writing(path):
         runfiles.write_atomic(path, text)

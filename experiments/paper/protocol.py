@@ -6,8 +6,9 @@ and `claims`, which measures the paper's claims from their run folders:
 - the learning curves (Fig. 4): `TASKS` and their epoch budget `EPOCHS`, the same for every agent;
 - noise robustness (Table II): `KAPPAS`, the window `LAST_N` per κ, `NOISE_AGENTS`, the noised
   `SEGMENTS`, the paper's figures `PAPER`; `kappa_curves` splits a run of 3 κ × R vmapped runs by
-  κ (`kappa_dir` names the folder of one κ's runs alone), `steadiness` is each run's std over its
-  last N epochs, `load_noise_curves` reads them all;
+  κ (`kappa_dir` names the folder of one κ's runs alone), `residual_spread` is each run's std around its
+  fitted trend over its last N epochs and `trending` says whether the runs still climb there,
+  `load_noise_curves` reads them all;
 - transfer (Fig. 6): `SOURCE_ENV`, `TARGET_ENV`, `AGENT` and `THRESHOLDS`; `seed_measures` gives
   each seed's AUC and env steps to each threshold.
 """
@@ -28,7 +29,8 @@ from experiments import report
 # agent that learns the task levels off in pilot runs of today's tasks, plus a margin (docs/deviations.md,
 # "Learning-curve budgets"; results/pilots). The reaching tasks': visual_bidal on planar_reach is within 0.05 of its
 # plateau (0.93) from epoch 75, and the visual agents on ur5_reach near theirs by 150; nicol_slide's: the
-# multimodal agents at ≥ 0.9 from epoch 10-13, the visual agents at the do-nothing level through 25 epochs;
+# multimodal agents at ≥ 0.9 from epoch 10-13, the visual agents at 0.05-0.06 through 25 epochs
+# (a policy that does nothing scores 0.031: results/floors);
 # nicol_lift's: multimodal_bidal (λ 0.1) at ≥ 0.9 air-goal success from epoch 11, proprio_baseline from 6; each
 # NICOL budget is that level-off epoch plus about 15
 EPOCHS = {"planar_reach": 100, "ur5_reach": 150, "nicol_slide": 30, "nicol_lift": 25}
@@ -57,6 +59,7 @@ KAPPAS = (0.05, 0.10, 0.15)
 NOISE_EPOCHS = 45
 LAST_N = {0.05: 5, 0.10: 30, 0.15: 30}  # the paper's window per κ (Table II)
 NOISE_AGENTS = ("multimodal_bidal", "multimodal_baseline", "proprio_baseline")
+NOISE_ENV = "nicol_slide"
 SEGMENTS = "ee_pos,ee_rot,obj_pos"
 # the paper's Table II: κ -> agent -> (mean, std)
 PAPER = {
@@ -85,11 +88,61 @@ def kappa_curves(run: dict, runs: int) -> list[report.Curve]:
     return [kappa_curve(run, k, slice(i * runs, (i + 1) * runs)) for i, k in enumerate(KAPPAS)]
 
 
-def steadiness(curve: report.Curve, last_n: int) -> np.ndarray:
-    """Each run's std (numpy's population std) of its success over its last min(last_n, E) epochs [R]:
-    how steady its learning is under noise (the paper's "mean standard deviation", Sec. IV-B, is their mean)."""
+def window_fit(curve: report.Curve, last_n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each run's least-squares line through its success over its last min(last_n, E) epochs: (slope per epoch
+    [R], residuals [N, R])."""
     chex.assert_rank(curve.success, 2)
-    return curve.success[-last_n:].std(axis=0)
+    window = curve.success[-last_n:]
+    x = curve.epoch[-last_n:] - curve.epoch[-last_n:].mean()
+    slope = (x[:, None] * (window - window.mean(axis=0))).sum(axis=0) / max(float((x**2).sum()), 1e-12)
+    return slope, window - window.mean(axis=0) - x[:, None] * slope
+
+
+def residual_spread(curve: report.Curve, last_n: int) -> np.ndarray:
+    """Each run's steadiness [R]: the std of its success around its own fitted linear trend over its last
+    min(last_n, E) epochs (residual std, N − 2 degrees of freedom), so that a run still climbing through the window
+    is not called unsteady for its climb (the paper's "mean standard deviation", Sec. IV-B, is their mean)."""
+    _, residuals = window_fit(curve, last_n)
+    return np.sqrt((residuals**2).sum(axis=0) / max(residuals.shape[0] - 2, 1))
+
+
+def trend(curve: report.Curve, last_n: int) -> tuple[float, float, float]:
+    """(mean, low, high): the Student-t 95 % interval over runs of their fitted slopes per epoch (`window_fit`)."""
+    from experiments import stats
+
+    return stats.student_interval(window_fit(curve, last_n)[0])
+
+
+MIN_MOVE = 0.01  # success over the window below which a fitted trend is no climb (one point of success)
+
+
+def trending(curve: report.Curve, last_n: int) -> bool:
+    """Whether the runs' success still moves over the window: their slopes' interval (`trend`) excludes 0 and the
+    mean slope moves success by at least `MIN_MOVE` over the window's epochs."""
+    mean, low, high = trend(curve, last_n)
+    return bool((low > 0 or high < 0) and abs(mean) * (min(last_n, len(curve.epoch)) - 1) >= MIN_MOVE)
+
+
+def trend_text(curve: report.Curve, last_n: int) -> str:
+    """"+0.0100 [0.0080, 0.0120] an epoch": `trend`."""
+    mean, low, high = trend(curve, last_n)
+    return f"{mean:+.4f} [{low:.4f}, {high:.4f}] an epoch"
+
+
+def eval_episodes(run: dict) -> int:
+    """A run's eval episodes per seed and epoch: its config's eval_envs, else its env and agent preset's."""
+    given = run["config"].get("train", {}).get("eval_envs")
+    return int(given or resolve({"env": run["env"], "agent": run["agent"]}).train.eval_envs)
+
+
+def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
+    """"k/S above its floor": how many of the run's seeds are clearly above its task's floor over all goals
+    (`report.seeds_above` of its eval success); "" where results/floors lacks the task."""
+    task = run["env"] if run["env"] in floors else run["env"].removesuffix("_reduced")
+    if "all" not in floors.get(task, {}):
+        return ""
+    above = report.seeds_above(run["success"], eval_episodes(run), floors[task]["all"].value, last_n)
+    return f"{int(above.sum())}/{above.size} above its floor"
 
 
 def budget(run: dict, default: int | None = None) -> int:

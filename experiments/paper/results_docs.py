@@ -28,7 +28,7 @@ import numpy as np
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
-from experiments.paper import grid, protocol
+from experiments.paper import grid, ladder, protocol
 
 PROG = "python -m experiments.paper.results_docs"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -36,8 +36,8 @@ DOC = os.path.join("docs", "results.md")
 PARTS = ("Performance", "Learning (paper Fig. 4)", "Noise (paper Table II)", "Transfer (paper Fig. 6)",
          "Reliability")
 # the folders of results/ in the order of their sections; each is linked from its sections
-FOLDERS = ("scaling", "parity", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "noise",
-           "noise_probe", "transfer", "reliability")
+FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "ladder",
+           "noise", "noise_probe", "transfer", "reliability")
 FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
 LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
 ENGINES = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}
@@ -98,8 +98,8 @@ def curves_table(root: str, runs: str) -> str:
     """The learning-curve grid OUT/<task>/<agent>: an agent a row, a task a column headed by its budget
     (`protocol.EPOCHS`), "final / AUC"; "—" for a cell without its run folder (an agent not run on that task yet);
     a cell whose run is not today's (`grid.stale_runs` against the cell the grid trains there by default,
-    `grid.curve_arms`, and its task's physics today) marked with `grid.STALE` (its epochs are its own). Each run
-    folder is read once."""
+    `grid.curve_arms`, and its task's physics today) marked with `grid.STALE` (its epochs are its own); the last row
+    the tasks' floors over all goals (root/floors, `report.load_floors`). Each run folder is read once."""
     out = os.path.join(root, runs)
     tasks = [t for t in protocol.TASKS if os.path.isdir(os.path.join(out, t))]
     arms = [arm for arm in grid.curve_arms(tasks, AGENTS, protocol.DEFAULT_SEEDS, protocol.DEFAULT_SEED, None, {}, out)
@@ -118,7 +118,20 @@ def curves_table(root: str, runs: str) -> str:
         mark = grid.STALE if name in stale else ""
         return f"{report.final_cell(curve, LAST_N)} / {report.normalized_auc(curve):.3f}{mark}"
 
-    return report.markdown_table(head, [[a, *(cell(t, a) for t in tasks)] for a in agents])
+    floors = report.load_floors(os.path.join(root, "floors"))
+    rows = [[a, *(cell(t, a) for t in tasks)] for a in agents]
+    rows.append(["floor: a policy that does nothing", *(report.floor_value(floors, t) for t in tasks)])
+    return report.markdown_table(head, rows)
+
+
+def floors_table(root: str, runs: str) -> str:
+    """Each task's floor (root/runs/figures.json, `report.load_floors`): a row a task, a column per goal subset,
+    each estimate ± its 95 % Monte Carlo half-width; "—" for a subset the task does not have."""
+    floors = report.load_floors(os.path.join(root, runs))
+    subsets = list(dict.fromkeys(name for found in floors.values() for name in sorted(found, key=lambda n: n != "all")))
+    rows = [[task, *(f"{f.value:.4f} ± {f.half_width:.4f}" if (f := found.get(name)) else "—" for name in subsets)]
+            for task, found in floors.items()]
+    return report.markdown_table(["task", *(f"{name} goals" for name in subsets)], rows)
 
 
 def pilots_table(root: str, runs: Sequence[Sequence[str]]) -> str:
@@ -201,8 +214,9 @@ def noise_table(root: str, runs: str) -> str:
             mean, std, _ = report.final_success(found[k, a], protocol.LAST_N[k])
             cells += [f"{mean:.3f} ± {std:.3f}", "{:.3f} ± {:.3f}".format(*protocol.PAPER[k][a])]
         rows.append(cells)
-    return report.markdown_table(["κ", "last N epochs", *(f"{a}{whose}" for a in agents for whose in ("", ", paper"))],
-                                 rows)
+    floor = report.floor_text(report.load_floors(os.path.join(root, "floors")), protocol.NOISE_ENV)
+    head = [f"κ ({protocol.NOISE_ENV}'s {floor})", "last N epochs"]
+    return report.markdown_table([*head, *(f"{a}{whose}" for a in agents for whose in ("", ", paper"))], rows)
 
 
 def transfer_table(root: str, runs: str) -> str:
@@ -216,10 +230,9 @@ def transfer_table(root: str, runs: str) -> str:
                      f"{report.normalized_auc(c):.3f}",
                      *("not reached" if h is None else f"{h.env_steps:,.0f} (epoch {h.epoch})" for h in hits)])
     auc = [c.success.mean(axis=0) for c in arms]
-    diff, low, high = stats.bootstrap_difference([auc[0]], [auc[1]])
-    welch = stats.interval_text(*stats.welch_interval(*auc)[1:])
-    rows.append(["transfer − scratch, per seed: 95 % bootstrap; Welch t", "", "", "",
-                 f"{diff:+.3f} {stats.interval_text(low, high)}; {welch}", *([""] * len(protocol.THRESHOLDS))])
+    diff, low, high = stats.welch_interval(*auc)
+    rows.append(["transfer − scratch, per seed: Welch's 95 % t interval", "", "", "",
+                 f"{diff:+.3f} {stats.interval_text(low, high)}", *([""] * len(protocol.THRESHOLDS))])
     return report.markdown_table(head, rows)
 
 
@@ -236,10 +249,16 @@ def resumed_table(root: str, runs: str) -> str:
                                   "epochs without a row in metrics.csv"], rows)
 
 
+def ladder_table(root: str, runs: str) -> str:
+    """The pixel agents' ladder (`experiments.paper.ladder`) in root/runs: its rungs' success, the rung that closes
+    the gap, the probe of the visual agents' φ; "not run" where its runs or its probe are not there yet."""
+    return ladder.docs_table(os.path.join(root, runs))
+
+
 TABLES: dict[str, Callable[[str, object], str]] = {
-    "epochs": epochs_table, "curves": curves_table, "pilots": pilots_table, "lambda": lambda_table,
-    "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table, "transfer": transfer_table,
-    "resumed": resumed_table,
+    "epochs": epochs_table, "floors": floors_table, "curves": curves_table, "pilots": pilots_table,
+    "lambda": lambda_table, "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table,
+    "transfer": transfer_table, "resumed": resumed_table, "ladder": ladder_table,
 }
 
 

@@ -11,9 +11,11 @@ import pytest
 import envs_mjx
 from bidal_jax import acting
 
-# nicol_lift_reduced is nicol_lift with proprio segments dropped: test_nicol.py checks it
-# against nicol_lift instead of compiling the whole contract again.
-ENV_NAMES = tuple(name for name in envs_mjx.names() if name != "nicol_lift_reduced")
+# nicol_lift_reduced is nicol_lift with proprio segments dropped, and the ladder's nicol_slide_ee and
+# nicol_slide_ee_obj are nicol_slide with only some kept: test_nicol.py checks them against nicol_lift and
+# nicol_slide instead of compiling the whole contract again.
+VARIANTS = ("nicol_lift_reduced", "nicol_slide_ee", "nicol_slide_ee_obj")
+ENV_NAMES = tuple(name for name in envs_mjx.names() if name not in VARIANTS)
 
 
 N_ENVS, N_STEPS = 10, 100  # 1,000 random steps, beyond the episode length too

@@ -70,6 +70,31 @@ def test_reduced_lift_keeps_exactly_the_28_named_features(lift, lift_resets):
     np.testing.assert_array_equal(np.asarray(small.obs["desired_goal"]), np.asarray(full.obs["desired_goal"]))
 
 
+@pytest.mark.parametrize("name, kept", [("nicol_slide_ee", ("ee_pos",)), ("nicol_slide_ee_obj", ("ee_pos", "obj_pos"))])
+def test_the_ladders_slide_variants_keep_exactly_their_segments(slide, slide_resets, name, kept):
+    """The ladder's rungs (experiments.paper.ladder): nicol_slide's task, observing only the kept segments."""
+    variant = envs_mjx.make(name, render=False)
+    spec = variant.observation_spec
+    assert isinstance(variant, NicolSlide) and variant.name == name
+    assert spec.segment_names == kept and spec.proprio_size == 3 * len(kept) and spec.derived == ()
+    assert spec.goal_segment == ("obj_pos" if "obj_pos" in kept else None)
+    assert spec.shapes()["proprio"] == ((3 * len(kept),), jnp.float32)
+    assert variant.physics_id == slide.physics_id
+    full = jax.tree.map(lambda x: x[0], slide_resets)
+    small = variant._observe(full.data, full.obs["desired_goal"])  # eager: no program compiled for the variant
+    expected = np.concatenate([np.asarray(full.obs["proprio"][slide.observation_spec.segment_slice(n)]) for n in kept])
+    np.testing.assert_allclose(np.asarray(small["proprio"]), expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(small["desired_goal"]), np.asarray(full.obs["desired_goal"]))
+
+
+def test_keeping_an_unknown_segment_is_refused():
+    class Colour(nicol.NicolSlideKept):
+        name, keep = "nicol_slide_colour", ("ee_pos", "obj_colour")
+
+    with pytest.raises(ValueError, match="nicol_slide_colour: cannot keep \\['obj_colour'\\]"):
+        Colour(render=False)
+
+
 def test_dropping_unknown_segment_names_is_refused(lift):
     with pytest.raises(ValueError, match="obj_colour"):
         lift.observation_spec.without(("obj_colour",))

@@ -104,13 +104,13 @@ def test_help_names_every_env_and_agent_and_each_default_once(capsys):
 
 def test_help_opens_with_the_tasks_agents_and_presets_before_the_options():
     """What a newcomer reads first: one line of usage, then what the command does, every agent and every task with
-    its preset's epochs (the first 15 lines), then that the presets override the defaults and that --print-config
+    its preset's epochs (the first 17 lines), then that the presets override the defaults and that --print-config
     prints the resolved config, before the first option."""
     import envs_mjx
     from bidal_jax.config import AGENTS, resolve
 
     lines = cli.run_parser().format_help().splitlines()
-    head = "\n".join(lines[:15])
+    head = "\n".join(lines[:17])
     assert lines[0] == "usage: python -m experiments.run [options]"
     for name in (*envs_mjx.names(), *AGENTS):
         assert name in head, name

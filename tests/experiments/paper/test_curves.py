@@ -13,6 +13,7 @@ import pytest
 import envs_mjx
 from bidal_jax import config as config_lib
 from bidal_jax.run import loop
+from experiments import report
 from experiments.paper import curves, grid
 from tests.conftest import TODAY, write_fake_run
 from tests.helpers import REPO
@@ -21,6 +22,13 @@ TASKS = ("planar_reach", "ur5_reach", "nicol_slide", "nicol_lift")
 SMALL = ["--tasks", "planar_reach", "--agents", "proprio_baseline,visual_baseline,multimodal_baseline",
          "--seeds", "2", "--epochs", "3", "--quiet"]
 DONE = [(0.1, 0.3), (0.5, 0.7), (0.7, 0.9)]  # 3 epochs of 2 seeds: a finished run of SMALL
+
+
+@pytest.fixture(autouse=True)
+def no_floors(monkeypatch):
+    """The tables without the stored floors (results/floors), so that their cells are the figures alone; the test
+    of the floors' marks gives its own."""
+    monkeypatch.setattr(report, "load_floors", lambda folder=report.FLOORS: {})
 
 
 @pytest.fixture
@@ -302,7 +310,10 @@ def test_report_writes_the_plot_and_table_from_run_folders_without_checkpoints(t
     # runs recorded before wall_time_with_compile show their wall_time, marked; the other its time with compile
     assert "| proprio_baseline | 0.700 ± 0.100, 30 s* | 0.750 ± 0.250, 30 s* |" in table
     assert "| multimodal_bidal | 0.350 ± 0.050, 80 s, epoch 2 of 3 | — |" in table
-    assert "Total wall time of the runs: 140 s (2.3 min)." in table and "†" not in table  # no run is stale
+    # machine time: each run alone on a machine without a recorded GPU count (1)
+    assert "the runs held: 140 s (2.3 min) of GPU time" in table and "summed process time: 140 s (2.3 min)." in table
+    assert "| floor: a policy that does nothing | not computed | not computed |" in table
+    assert "†" not in table  # no run is stale
     assert "Missing: ur5_reach/multimodal_bidal. Unfinished: planar_reach/multimodal_bidal (epoch 2 of 3)." in table
     # the last line is the command that writes the same table again from the run folders
     command = table.splitlines()[-1]
@@ -402,7 +413,7 @@ def test_the_table_marks_stale_cells(tmp_path, no_nicol, fake_run):
     assert "| multimodal_bidal | 0.700 ± 0.100, 30 s*† | — |" in table
     assert ("\n\n† stale: 2 of 3 cells, runs not recorded on today's physics of their task or made with another "
             "config than their arm's today") in table
-    assert table.index("| multimodal_bidal |") < table.index("† stale") < table.index("Total wall time")
+    assert table.index("| multimodal_bidal |") < table.index("† stale") < table.index("Machine time")
 
 
 def test_runs_resumed_with_an_empty_buffer_are_named_below_the_table():
@@ -411,3 +422,17 @@ def test_runs_resumed_with_an_empty_buffer_are_named_below_the_table():
     assert note[0].endswith("(`--resume --fresh-buffer`, a deviation from an uninterrupted run: the next epochs learn "
                             "from fresh episodes only): nicol_lift/multimodal_bidal after epochs 35, 70.")
     assert grid.fresh_buffer_note({"nicol_lift/proprio_baseline": {"fresh_buffer_epochs": []}}) == []
+
+
+def test_cells_say_how_many_seeds_are_above_the_floor(tmp_path, fake_run, monkeypatch):
+    floors = {"planar_reach": {"all": report.Floor(0.5, 0.001, 1.0)}}
+    monkeypatch.setattr(report, "load_floors", lambda folder=report.FLOORS: floors)
+    out = tmp_path / "out"
+    # seed 0 at 0.9 (of 64 eval episodes an epoch: far above 0.5), seed 1 at 0.5 (the floor itself)
+    fake_run(str(out / "planar_reach" / "proprio_baseline"), "planar_reach", [(0.9, 0.5)] * 3, None,
+             agent="proprio_baseline")
+    assert curves.main(["--report", "--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "2",
+                        "--epochs", "3", "--out", str(out)]) == 0
+    table = (out / "table.md").read_text()
+    assert "| proprio_baseline | 0.700 ± 0.200 (last 3) (1/2 above its floor), 30 s*" in table
+    assert "| floor: a policy that does nothing | 0.500 |" in table

@@ -26,7 +26,7 @@ def test_noise_experiment_writes_the_table_and_skips_finished_agents(tmp_path, c
     assert "proprio_baseline (ours)" in text and "0.882 ± 0.0191" in text  # the paper's 5 % figure beside ours
     # a window longer than the run uses what there is, and says so; 2 epochs of the noise budget 45: short
     assert text.count("(last 2 of 2 epochs; short run: 2 of 45 epochs)") == 3
-    assert "Steadiness: each run's std" in text
+    assert "Steadiness: each run's residual std" in text and "(slope " in text
     regenerate = f"Regenerate from the run folders: `python -m experiments.paper.noise_robustness --report --out {out}`"
     assert regenerate in text
     assert os.path.isfile(os.path.join(out, "curves.png")) and os.path.isfile(os.path.join(out, "curves.csv"))
@@ -60,11 +60,18 @@ def test_dry_run_prints_the_plan_and_writes_nothing(tmp_path, capsys):
     ]
 
 
-def test_steadiness_is_each_runs_std_over_the_window_and_short_runs_are_marked():
-    success = np.array([[0.0, 0.5], [0.2, 0.5], [0.4, 0.5]])  # 3 epochs × 2 runs
-    curve = report.Curve("κ", "agent", "dir", np.arange(1.0, 4), np.arange(1.0, 4), np.arange(1.0, 4), success)
-    np.testing.assert_allclose(protocol.steadiness(curve, 2), [0.1, 0.0])
-    np.testing.assert_allclose(protocol.steadiness(curve, 30), [np.std([0.0, 0.2, 0.4]), 0.0])
+def test_steadiness_is_each_runs_spread_around_its_trend_and_short_runs_are_marked():
+    # 4 epochs × 2 runs: run 0 climbs 0.2 an epoch without scatter, run 1 is flat ± 0.1
+    success = np.array([[0.0, 0.4], [0.2, 0.6], [0.4, 0.4], [0.6, 0.6]])
+    curve = report.Curve("κ", "agent", "dir", np.arange(1.0, 5), np.arange(1.0, 5), np.arange(1.0, 5), success)
+    slope, residuals = protocol.window_fit(curve, 30)
+    np.testing.assert_allclose(slope, [0.2, 0.04])
+    # run 1's line 0.44 + 0.04·(x − 2.5) leaves residuals −0.1+0.06, ...: their std with N − 2 degrees of freedom
+    np.testing.assert_allclose(protocol.residual_spread(curve, 30), [0.0, np.sqrt((residuals[:, 1] ** 2).sum() / 2)],
+                               atol=1e-12)
+    climbing = report.Curve("κ", "agent", "dir", np.arange(1.0, 5), np.arange(1.0, 5), np.arange(1.0, 5),
+                            np.array([[0.0, 0.01], [0.2, 0.19], [0.4, 0.42], [0.6, 0.6]]))
+    assert protocol.trending(climbing, 30) and not protocol.trending(curve, 30)
     assert noise.window_note(40, 40, 40, 30) == " (40 epochs)"
     assert noise.window_note(19, 19, 100, 30) == " (last 19 of 19 epochs; short run: 19 of 100 epochs)"
     # rows lost outside the run: short only by the epoch reached, and the lost rows counted
