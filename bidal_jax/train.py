@@ -20,15 +20,17 @@ buffer, draws its share of each batch and averages its gradients with the other 
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+import functools
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
 
-from bidal_jax import acting, noise, normalizer, replay
+from bidal_jax import acting, noise, normalizer, replay, schedule
 from bidal_jax.config import Config, ConfigError
+from bidal_jax.schedule import Draws, Phase, branch
 
 SEED_AXIS, ENV_AXIS = "seeds", "envs"  # the device mesh's axes (`bidal_jax.run.devices`)
 
@@ -71,25 +73,6 @@ class Shards:
         return tree if self.count == 1 else jax.lax.pmean(tree, ENV_AXIS)
 
 
-class Draws(NamedTuple):
-    """The parts of a `TrainState` that a phase's start draws anew: its key, its evaluation key and the
-    observation noise's state."""
-
-    key: jax.Array
-    eval_key: jax.Array
-    noise: noise.NoiseState | None
-
-
-class Phase(NamedTuple):
-    """What a phase of an epoch (a cycle, or a chunk of the evaluation) rolls out, and with which keys: its
-    episodes' starts, the rollout's key, and a cycle's keys of its updates and HER goals."""
-
-    starts: acting.Starts
-    key: jax.Array
-    key_updates: jax.Array
-    key_goals: jax.Array
-
-
 HITS, COUNT = "_hits", "_count"  # a cycle's successes and episodes of a start kind, summed into its rate by `epoch`
 
 
@@ -98,13 +81,6 @@ def start_kinds(pick: jax.Array) -> dict[str, jax.Array]:
     `env.exploration_reset` (nicol_lift: the cube in the hand, HER's pick-and-place protocol) and
     "train_success_table" by `env.reset`, so that a run shows how far the held starts alone carry its success."""
     return {"train_success_held": pick, "train_success_table": jnp.logical_not(pick)}
-
-
-def branch(pred: bool | jax.Array, on_true: Callable, on_false: Callable, *operands) -> Any:
-    """`lax.cond` on a traced `pred`; on a Python bool, the one branch it picks (the other is not traced)."""
-    if isinstance(pred, bool):
-        return (on_true if pred else on_false)(*operands)
-    return jax.lax.cond(pred, on_true, on_false, *operands)
 
 
 # `jax.named_scope`s of an epoch's parts, by which profiles attribute its kernels (experiments/bench/tracing.py)
@@ -176,6 +152,51 @@ def make_learner(env, config: Config, shards: Shards) -> Learner:
     return Learner(networks, optimizers, update)
 
 
+def initial_state(env, config: Config, learner: Learner, n_noisy: int, env_shards: int, key: jax.Array) -> TrainState:
+    """A run's state before its first epoch: the learner's initial parameters (the targets equal to them) and
+    optimiser states, empty normalisers and an empty buffer of one env shard's share of `buffer_episodes`, whose
+    episodes keep the clean values of `n_noisy` noisy proprio features."""
+    train, spec = config.train, env.observation_spec
+    key_params, key_state = jax.random.split(key)
+    params = learner.networks.init(key_params)
+    episode = replay.episode_template(env, config.agent.uses_image, n_noisy)
+    return TrainState(
+        params=params, target_params=params,
+        opt_state={step.name: learner.optimizers[step.name].init(step.trained(params))
+                   for step in config.agent.family.update_order},
+        proprio_norm=normalizer.init(spec.proprio_size), goal_norm=normalizer.init(spec.goal_size),
+        buffer=replay.init(train.buffer_episodes // env_shards, episode),
+        key=key_state, eval_key=jax.random.split(key_state)[1],  # replaced by each epoch's evaluation key
+        noise=noise.init(train.obs_noise, n_noisy) if n_noisy else None,
+        env_steps=jnp.zeros((), jnp.int32), updates=jnp.zeros((), jnp.int32), epoch=jnp.zeros((), jnp.int32),
+    )
+
+
+def cycle_metrics(shards: Shards, metrics: dict, success: jax.Array, pick: jax.Array | None) -> dict[str, jax.Array]:
+    """A cycle's metrics: its updates' means [updates_per_cycle] and its episodes' success [n], overall and (with
+    exploration starts `pick`) as the hits and episodes of each start kind, that `epoch_metrics` makes a rate."""
+    kinds = {} if pick is None else start_kinds(pick)
+    counted = {f"{kind}{part}": shards.average(value) for kind, mask in kinds.items()
+               for part, value in ((HITS, (success * mask).sum()), (COUNT, mask.sum().astype(jnp.float32)))}
+    return {**shards.average(jax.tree.map(jnp.mean, metrics)), **counted,
+            "train_success": shards.average(success.mean())}
+
+
+def epoch_metrics(env, shards: Shards, cycles: int, metrics: dict, success: jax.Array, goals: jax.Array,
+                  env_steps: jax.Array) -> dict[str, jax.Array]:
+    """An epoch's metrics: its cycles' means (a start kind's success rate from its hits and episodes), and the
+    evaluation's success [n_eval] overall and among each of `env.goal_subsets` of its goals [n_eval, G]."""
+    metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),
+               "env_steps": env_steps}
+    for kind in (k for k in list(metrics) if k.endswith(HITS)):  # the cycles' successes of a start kind
+        name = kind.removesuffix(HITS)
+        metrics[name] = metrics.pop(kind) / jnp.maximum(metrics.pop(name + COUNT), 1e-9)
+    for name, mask in env.goal_subsets(goals).items():  # e.g. nicol_lift's air goals: success among them
+        hits, count = shards.average((success * mask).sum()), shards.average(mask.sum().astype(jnp.float32))
+        metrics[f"eval_success_{name}"] = hits / jnp.maximum(count, 1.0)
+    return metrics
+
+
 def make_train(env, config: Config, env_shards: int = 1):
     """Build `init(key) -> TrainState` and `epoch(TrainState) -> (TrainState, metrics)`.
 
@@ -187,62 +208,19 @@ def make_train(env, config: Config, env_shards: int = 1):
     with other random draws. What the env must offer is checked before (`run.validate`).
     """
     train, agent, spec = config.train, config.agent, env.observation_spec
-    steps, future_p = agent.family.update_order, her_probability(train.her_k)
-    shards = Shards(env_shards)
+    shards, future_p = Shards(env_shards), her_probability(train.her_k)
     learner = make_learner(env, config, shards)
-    networks, optimizers, update = learner.networks, learner.optimizers, learner.update
     # observation noise (paper Eq. 9) on these proprio features; none: the noise code is not traced
     noise_map = noise.noise_map(spec, noise.parse_segments(train.noise_segments), train.noise_variant)
     noisy = noise_map.indices
     if len(noisy) and env_shards > 1:  # σ is a quantile of the whole buffer, which no shard holds
         raise ConfigError(f"--noise-segments {train.noise_segments!r} runs with 1 env shard only "
                           f"(here {env_shards}; `device_layout` gives 1)")
-    n_envs, n_eval = train.num_envs // env_shards, train.eval_envs // env_shards
-    # the evaluation runs in chunks of the cycles' width inside the cycles' scan, through the same traced env
-    # step, where they roll out exactly n_eval episodes; otherwise (e.g. 128 of 2,048 envs) as a rollout of its
-    # own, since padding it to the cycles' width would cost physics every epoch
-    cycles, chunks = train.cycles_per_epoch, n_eval // n_envs if n_eval % n_envs == 0 else 0
-    eval_width = n_envs if chunks else n_eval
+    phases = schedule.Schedule(train.cycles_per_epoch, train.num_envs // env_shards, train.eval_envs // env_shards,
+                               train.exploration_starts)
+    n_envs, cycles = phases.n_envs, phases.cycles
 
-    def policy(ts: TrainState, explore: bool | jax.Array) -> acting.Policy:
-        return acting.make_policy(networks, config, acting.acting_params(ts, agent.family.acting_networks), explore)
-
-    def eval_rows(chunk: jax.Array | int) -> jax.Array:
-        """The evaluation episodes of chunk `chunk` [eval_width]: chunk·eval_width onwards."""
-        return chunk * eval_width + jnp.arange(eval_width)
-
-    def observer(ts: TrainState, evaluating: bool | jax.Array, chunk: jax.Array | int) -> acting.Observer | None:
-        """What the agent sees of an observation: with noise on the `noisy` features, if any. A cycle draws
-        the noise of its n_envs episodes; an evaluation chunk takes its rows of the draw for all n_eval, as
-        one rollout of them (`acting.evaluate`) draws it."""
-        if not len(noisy):
-            return None
-
-        def observe(obs: dict, key: jax.Array) -> dict:
-            seen = branch(evaluating, lambda: noise.draw(ts.noise, noise_map, key, (n_eval,))[eval_rows(chunk)],
-                          lambda: noise.draw(ts.noise, noise_map, key, (n_envs,)))
-            return noise.noised(noise_map, obs, seen)
-
-        return observe
-
-    def init(key: jax.Array) -> TrainState:
-        key_params, key_state = jax.random.split(key)
-        params = networks.init(key_params)
-        episode = replay.episode_template(env, agent.uses_image, len(noisy))
-        return TrainState(
-            params=params,
-            target_params=params,
-            opt_state={step.name: optimizers[step.name].init(step.trained(params)) for step in steps},
-            proprio_norm=normalizer.init(spec.proprio_size),
-            goal_norm=normalizer.init(spec.goal_size),
-            buffer=replay.init(train.buffer_episodes // env_shards, episode),
-            key=key_state,
-            eval_key=jax.random.split(key_state)[1],  # replaced by each epoch's evaluation key
-            noise=noise.init(train.obs_noise, len(noisy)) if len(noisy) else None,
-            env_steps=jnp.zeros((), jnp.int32),
-            updates=jnp.zeros((), jnp.int32),
-            epoch=jnp.zeros((), jnp.int32),
-        )
+    init = functools.partial(initial_state, env, config, learner, len(noisy), env_shards)
 
     def cycle_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array) -> tuple[Draws, Phase]:
         """A cycle's keys and the starts of its n_envs exploring episodes (with `exploration_starts`); σ of
@@ -254,30 +232,34 @@ def make_train(env, config: Config, env_shards: int = 1):
         starts = acting.draw_starts(key_start, n_envs, train.exploration_starts)
         return draws._replace(key=key), Phase(starts, key_steps, key_updates, key_goals)
 
-    def eval_start(draws: Draws, buffer: replay.ReplayState, chunk: jax.Array | int) -> tuple[Draws, Phase]:
-        """The epoch's evaluation key (drawn by chunk 0, after the last cycle) and the starts of chunk
-        `chunk`'s episodes, from `env.reset` as one rollout of all n_eval (`acting.evaluate`) draws them."""
-        key, key_eval = jax.random.split(draws.key)
-        first = chunk == 0
-        draws = draws._replace(key=jnp.where(first, key, draws.key),
-                               eval_key=jnp.where(first, key_eval, draws.eval_key))
-        key_eval = shards.own_key(draws.eval_key)
-        starts = acting.Starts(jax.random.split(jax.random.split(key_eval)[0], n_eval)[eval_rows(chunk)])
-        if train.exploration_starts > 0 and chunks:  # in the cycles' scan: shaped as theirs, none picked
-            starts = starts._replace(eased=starts.reset, pick=jnp.zeros((n_envs,), bool))
-        return draws, Phase(starts, key_eval, key_eval, key_eval)
+    def rollout(ts: TrainState, chunk: jax.Array | int, evaluating: schedule.Flag) -> tuple:
+        """(state, phase, final states, records) of a cycle's exploring rollout of n_envs episodes, or of evaluation
+        chunk `chunk`'s greedy one; the agent sees noise on the `noisy` features drawn for the phase's episodes."""
+        draws = Draws(ts.key, ts.eval_key, ts.noise)  # what a phase's start changes: not the whole state
+        draws, phase = branch(evaluating, lambda d, _, c: phases.evaluation_start(d, c, shards.own_key),
+                              cycle_start, draws, ts.buffer, chunk)
+        ts = ts.replace(key=draws.key, eval_key=draws.eval_key, noise=draws.noise)
+        explore = not evaluating if isinstance(evaluating, bool) else jnp.logical_not(evaluating)
+        acting_params = acting.acting_params(ts, agent.family.acting_networks)
+        policy = acting.make_policy(learner.networks, config, acting_params, explore)
 
-    def insert(buffer: replay.ReplayState, episodes: dict, evaluating: bool | jax.Array) -> replay.ReplayState:
-        """`replay.insert` of a cycle's episodes. An evaluation chunk writes back what the slots hold and does
-        not advance, so that the buffer is updated in place in every phase, outside `lax.cond` (whose outputs
-        XLA would copy: hundreds of MB of images)."""
-        if isinstance(evaluating, bool):
-            return buffer if evaluating else replay.insert(buffer, episodes)
-        held = jax.tree.map(lambda b: jax.lax.dynamic_slice_in_dim(b, buffer.position, n_envs), buffer.episodes)
-        kept = jax.tree.map(lambda e, h: jnp.where(evaluating, h, e.astype(h.dtype)), episodes, held)
-        written = replay.insert(buffer, kept)
-        return written.replace(position=jnp.where(evaluating, buffer.position, written.position),
-                               size=jnp.where(evaluating, buffer.size, written.size))
+        def observe(obs: dict, key: jax.Array) -> dict:
+            seen = phases.per_episode(evaluating, chunk, lambda n: noise.draw(ts.noise, noise_map, key, (n,)))
+            return noise.noised(noise_map, obs, seen)
+
+        final, records = acting.rollout(
+            env, policy, phase.key, states=acting.states_at(env, phase.starts), observe=observe if len(noisy) else None,
+            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
+        )
+        return ts, phase, final, records
+
+    def insert(ts: TrainState, phase: Phase, final: Any, records: Any, evaluating: schedule.Flag) -> tuple:
+        """(buffer, episodes): the phase's episodes inserted into the buffer (`Schedule.insert`)."""
+        last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
+                                                               jax.random.fold_in(phase.key, 2))
+        with jax.named_scope(REPLAY_SCOPE):
+            episodes = replay.to_episodes(records, final.obs, last, noisy, agent.uses_image)
+            return phases.insert(ts.buffer, episodes, evaluating), episodes
 
     def learn(ts: TrainState, phase: Phase, final: Any, episodes: dict) -> tuple[TrainState, dict]:
         """A cycle's learning from its rollout (its episodes already inserted): update the normalisers, then
@@ -291,70 +273,31 @@ def make_train(env, config: Config, env_shards: int = 1):
                 goal_norm=normalizer.update(ts.goal_norm, shards.everyone(goals)),
                 env_steps=ts.env_steps + train.num_envs * env.episode_length,
             )
-        ts, metrics = jax.lax.scan(update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
-        success = final.metrics["success"]
-        kinds = {} if phase.starts.pick is None else start_kinds(phase.starts.pick)
-        counted = {f"{kind}{part}": shards.average(value) for kind, mask in kinds.items()
-                   for part, value in ((HITS, (success * mask).sum()), (COUNT, mask.sum().astype(jnp.float32)))}
-        return ts.replace(buffer=None), {**shards.average(jax.tree.map(jnp.mean, metrics)), **counted,
-                                         "train_success": shards.average(success.mean())}
+        ts, metrics = jax.lax.scan(learner.update, ts, jax.random.split(phase.key_updates, train.updates_per_cycle))
+        return ts.replace(buffer=None), cycle_metrics(shards, metrics, final.metrics["success"], phase.starts.pick)
 
-    learned = jax.jit(learn)  # one trace serves the program and the shapes of its metrics (`skip`)
-
-    def skip(ts: TrainState, *rollout) -> tuple[TrainState, dict]:
-        """An evaluation chunk's `learn`: nothing learned, zero metrics."""
-        shapes = jax.eval_shape(learned, ts, *rollout)[1]
-        return ts.replace(buffer=None), jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
-
-    def phase(ts: TrainState, chunk: jax.Array | int, evaluating: bool | jax.Array) -> tuple:
-        """(state, phase, final states, records) of one phase: a cycle's exploring rollout of n_envs
-        episodes, or evaluation chunk `chunk`'s greedy one of eval_width episodes."""
-        draws = Draws(ts.key, ts.eval_key, ts.noise)  # what a phase's start changes: not the whole state
-        draws, plan = branch(evaluating, eval_start, cycle_start, draws, ts.buffer, chunk)
-        ts = ts.replace(key=draws.key, eval_key=draws.eval_key, noise=draws.noise)
-        explore = not evaluating if isinstance(evaluating, bool) else jnp.logical_not(evaluating)
-        final, records = acting.rollout(
-            env, policy(ts, explore), plan.key, states=acting.states_at(env, plan.starts),
-            observe=observer(ts, evaluating, chunk),
-            record=lambda step: (step.obs, step.action, step.state.obs["proprio"][..., noisy]),
-        )
-        return ts, plan, final, records
+    learned, skip = schedule.learn_or_skip(learn)
 
     def step(ts: TrainState, index: jax.Array) -> tuple[TrainState, tuple]:
-        """Phase `index` of the epoch's scan: cycle `index`, or from `cycles_per_epoch` on, evaluation chunk
-        index - cycles_per_epoch (where `chunks` puts the evaluation in the scan). Both roll out n_envs episodes
-        through the one traced env step, exploring or greedy; a cycle then learns from its episodes, an
-        evaluation chunk keeps their success."""
-        evaluating = index >= cycles if chunks else False
-        ts, plan, final, records = phase(ts, index - cycles, evaluating)
-        last = final.obs if not len(noisy) else noise.observe(ts.noise, noise_map, final.obs,
-                                                               jax.random.fold_in(plan.key, 2))
-        with jax.named_scope(REPLAY_SCOPE):
-            episodes = replay.to_episodes(records, final.obs, last, noisy, agent.uses_image)
-            buffer = insert(ts.buffer, episodes, evaluating)
-        ts, metrics = branch(evaluating, skip, learned, ts.replace(buffer=buffer), plan, final, episodes)
-        ts = ts.replace(buffer=buffer)
-        return ts, (metrics, final.metrics["success"], final.info["goal"])
+        """Phase `index` of the epoch's scan, cycle `index` or evaluation chunk index - cycles (`Schedule`): a
+        rollout of n_envs episodes through the one traced env step, their insert, then a cycle's learning."""
+        evaluating = phases.evaluating(index)
+        ts, phase, final, records = rollout(ts, index - cycles, evaluating)
+        buffer, episodes = insert(ts, phase, final, records, evaluating)
+        ts, metrics = branch(evaluating, skip, learned, ts.replace(buffer=buffer), phase, final, episodes)
+        return ts.replace(buffer=buffer), (metrics, final.metrics["success"], final.info["goal"])
 
     def epoch(ts: TrainState) -> tuple[TrainState, dict[str, jax.Array]]:
         """`cycles_per_epoch` cycles, then `eval_envs` deterministic evaluation episodes: in the cycles' scan
         (`chunks` of n_envs) or after it."""
-        ts, (metrics, success, goals) = jax.lax.scan(step, ts, jnp.arange(cycles + chunks))
-        if chunks:
-            success, goals = success[cycles:].reshape(-1), goals[cycles:].reshape(-1, goals.shape[-1])
+        ts, (metrics, success, goals) = jax.lax.scan(step, ts, jnp.arange(cycles + phases.chunks))
+        if phases.chunks:
+            success, goals = phases.evaluated(success, goals)
         else:
             with jax.named_scope(EVALUATION_SCOPE):
-                ts, _, final, _ = phase(ts, 0, True)
+                ts, _, final, _ = rollout(ts, 0, True)
             success, goals = final.metrics["success"], final.info["goal"]
         ts = ts.replace(epoch=ts.epoch + 1)
-        metrics = {**jax.tree.map(lambda m: m[:cycles].mean(), metrics), "eval_success": shards.average(success.mean()),
-                   "env_steps": ts.env_steps}
-        for kind in (k for k in list(metrics) if k.endswith(HITS)):  # the cycles' successes of a start kind
-            name = kind.removesuffix(HITS)
-            metrics[name] = metrics.pop(kind) / jnp.maximum(metrics.pop(name + COUNT), 1e-9)
-        for name, mask in env.goal_subsets(goals).items():  # e.g. nicol_lift's air goals: success among them
-            hits, count = shards.average((success * mask).sum()), shards.average(mask.sum().astype(jnp.float32))
-            metrics[f"eval_success_{name}"] = hits / jnp.maximum(count, 1.0)
-        return ts, metrics
+        return ts, epoch_metrics(env, shards, cycles, metrics, success, goals, ts.env_steps)
 
     return init, epoch

@@ -15,6 +15,7 @@ from __future__ import annotations
 import abc
 import dataclasses
 import hashlib
+import importlib
 import importlib.resources
 from collections.abc import Callable
 from typing import Any
@@ -138,6 +139,26 @@ def _option_value(opt: mujoco.MjOption, name: str, value: float | str):
         raise ValueError(f"{name}={value!r}: not a number") from err
 
 
+def enable_warp() -> None:
+    """Give mujoco.mjx its MuJoCo Warp backend where the process imported it without (the project's command lines
+    do, `experiments.start_process`, since Warp's import costs seconds of CUDA start-up and most runs step MJX's JAX
+    physics): import warp-lang, then run again the import-time code of the mujoco.mjx modules that bind Warp's names
+    on import (its `warp` package, the types of its Warp data and its io module; reloaded in place, so that the
+    functions mujoco.mjx exports see the new names). Called when an env first steps on Warp (`Env.use_backend`); a
+    no-op where mujoco.mjx has Warp already. ImportError where warp-lang is not installed."""
+    import mujoco.mjx.warp as mjx_warp
+
+    if mjx_warp.WARP_INSTALLED:
+        return
+    import warp  # noqa: F401 - an ImportError here, not a message printed by mujoco.mjx
+    from mujoco.mjx._src import io as mjx_io
+    from mujoco.mjx.warp import types as mjx_warp_types
+
+    for module in (mjx_warp_types, mjx_warp, mjx_io):
+        importlib.reload(module)
+
+
+
 def load_model(filename: str) -> mujoco.MjModel:
     """Load an MJCF model from `assets/` (the installed package `envs_mjx.assets`)."""
     with importlib.resources.as_file(ASSETS_DIR / filename) as path:
@@ -226,8 +247,6 @@ class Env(abc.ABC):
         if backend == "jax":
             self._put_jax()
         elif backend == "warp":
-            from envs_mjx import enable_warp
-
             enable_warp()
             from mujoco.mjx.third_party.mujoco_warp import OverflowType
 

@@ -81,6 +81,15 @@ def visible_geoms(mj_model: mujoco.MjModel) -> list[int]:
     return sorted(seen, key=lambda g: (RAY_TYPES.index(int(mj_model.geom_type[g])), g))
 
 
+def subtree_geoms(mj_model: mujoco.MjModel, body: str) -> tuple[int, ...]:
+    """Ids of the geoms of body `body` and of every body below it."""
+    root = mj_model.body(body).id
+    inside = np.zeros(mj_model.nbody, bool)
+    for b in range(mj_model.nbody):  # parents precede children in MuJoCo's body order
+        inside[b] = b == root or (b > 0 and inside[mj_model.body_parentid[b]])
+    return tuple(int(g) for g in np.nonzero(inside[mj_model.geom_bodyid])[0])
+
+
 def cast(directions: jax.Array, origin: jax.Array, geom_type: int, size: jax.Array, xpos: jax.Array,
          xmat: jax.Array) -> jax.Array:
     """Distance along each unit ray (P, 3) from `origin` to one geom (inf where missed)."""

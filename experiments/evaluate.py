@@ -16,8 +16,10 @@ of the run's κ (how far a policy trained at one noise level holds at others); t
 video's agent sees clean observations.
 
 `--video out.mp4` also renders `--video-episodes` episodes of seed 0 with MuJoCo's own
-renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view; MuJoCo's render also
-draws the goal markers the agent's frames leave out (`envs_mjx.base.MARKER_GROUP`, NICOL's).
+renderer (offscreen, `--video-size` 320x240 by default) beside the agent's 42×42 view. MuJoCo's half is lit for
+people (`lit`): a headlight and a light floor on a copy of the model that only the video draws, so that the
+agent's camera (which reads geom colours, not lights) and the physics' fingerprint stay as they are; it also draws
+the goal markers the agent's frames leave out (`envs_mjx.base.MARKER_GROUP`, NICOL's).
 
 Exit codes: 0 done; 2 bad input: an option, a checkpoint, a --video or --json folder that does not exist or
 cannot be written, or a machine where MuJoCo cannot render a --video (each refused before the evaluation runs); 4
@@ -28,6 +30,7 @@ Each failure is one `error: ...` line on stderr.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import os
@@ -77,14 +80,36 @@ def noise_line(trained: TrainedPolicy, noise_state: noise.NoiseState | None, cle
     return f"observations: noisy as in training's evaluation, κ {_kappas(noise_state)} {where}"
 
 
+# the video's lighting: a headlight of this ambient, diffuse and specular light, and the floor (planes darker than
+# FLOOR_RGBA) drawn in this light gray; the tasks' own colours are dark so that the agent's camera sees contrast
+HEADLIGHT = (0.4, 0.8, 0.1)
+FLOOR_RGBA = (0.4, 0.4, 0.44, 1.0)
+
+
+def lit(model):
+    """A copy of the MuJoCo `model` lit for a person's eyes, as the Playground's and dm_control's renders are:
+    a headlight (`HEADLIGHT`) and a light floor (`FLOOR_RGBA`); only what is drawn differs."""
+    import mujoco
+
+    model = copy.copy(model)
+    headlight = model.vis.headlight
+    headlight.active = 1
+    headlight.ambient[:], headlight.diffuse[:], headlight.specular[:] = HEADLIGHT
+    for geom in np.flatnonzero(model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE):
+        rgba = model.mat_rgba[model.geom_matid[geom]] if model.geom_matid[geom] >= 0 else model.geom_rgba[geom]
+        if rgba[:3].mean() < np.mean(FLOOR_RGBA[:3]):
+            model.geom_matid[geom], model.geom_rgba[geom] = -1, FLOOR_RGBA
+    return model
+
+
 def open_renderer(model, size: tuple[int, int], path: str):
-    """MuJoCo's offscreen renderer of `model` at `size` (width, height), made before the evaluation so that a
-    machine without an OpenGL platform is refused first: ConfigError naming the cause (MuJoCo raises
+    """MuJoCo's offscreen renderer of `model` (`lit`) at `size` (width, height), made before the evaluation so
+    that a machine without an OpenGL platform is refused first: ConfigError naming the cause (MuJoCo raises
     `mujoco.FatalError`, or its GL bindings another error, as the platform goes)."""
     import mujoco
 
     try:
-        return mujoco.Renderer(model, size[1], size[0])
+        return mujoco.Renderer(lit(model), size[1], size[0])
     except Exception as err:
         cause = str(err).strip() or repr(err)
         raise ConfigError(f"--video {path}: MuJoCo cannot render on this machine ({cause}); "
@@ -118,6 +143,10 @@ def render_video(env, trained: TrainedPolicy, key: jax.Array, episodes: int, pat
         view = np.pad(np.repeat(view, 3, axis=2), ((0, height - view.shape[0]), (0, 0), (0, 0)))
         return np.concatenate([renderer.render(), view], axis=1)
 
+    # imageio-ffmpeg starts ffmpeg with a `preexec_fn` (a process group of its own, away from Ctrl-C), which forks
+    # this multithreaded process (JAX's threads: a deadlock risk, which JAX warns of); without one, subprocess starts
+    # ffmpeg with no Python in the child (vfork and exec). ffmpeg then sees Ctrl-C too, and closes the file.
+    os.environ["IMAGEIO_FFMPEG_NO_PREVENT_SIGINT"] = "1"
     try:
         with rundir.writing(path), imageio.get_writer(path, fps=round(1 / 0.04), macro_block_size=1) as writer:
             keys = jax.random.split(key, episodes)

@@ -1,6 +1,10 @@
-"""Test configuration: JAX's persistent compilation cache, so that reruns skip compiles, and the
-fixtures that several test modules share."""
+"""Test configuration: the test processes set up as the command lines' (`experiments.start_process`: XLA:CPU flags,
+MuJoCo's OpenGL backend), JAX's persistent compilation cache, so that reruns skip compiles, and the fixtures that
+several test modules share."""
 
+import experiments  # noqa: F401 - first, before anything imports MuJoCo: it sets up the process
+
+# isort: split
 import contextlib
 import csv
 import json

@@ -38,8 +38,8 @@ has the columns this commit, ref and this ÷ ref. `--epochs N` caps every run (s
 Every run imports the code of its checkout (working directory and PYTHONPATH), whatever is
 installed: its `assets/` is registered as the package `envs_mjx.assets` (an editable install of
 another checkout would serve that one's), and a run that imported a module of the project from
-elsewhere fails. This process imports neither JAX nor envs_mjx (which sets XLA_FLAGS), so every
-run gets the caller's environment and sets its own flags. Each run's compilation cache is given
+elsewhere fails. Every run gets the environment this command was started with
+(`experiments.CALLER_ENVIRONMENT`) and sets its own flags. Each run's compilation cache is given
 as `$BIDAL_JAX_CACHE` (the run's own setting) and `$JAX_COMPILATION_CACHE_DIR`.
 
 Exit codes: 0 done (threshold reached or not); 1 a run failed (one `error: ...` line with its
@@ -64,6 +64,7 @@ import time
 
 import numpy as np
 
+import experiments
 from experiments.report import curves, load_run, markdown_table, time_to_threshold
 
 PROG = "python -m experiments.bench.success"
@@ -145,7 +146,7 @@ def launch(tree: str, args: list[str], cache: str) -> tuple[str, float]:
     """Run experiments.run with `args` from the checkout `tree` with the persistent compilation
     cache `cache`: (its stderr, seconds from start to exit). RuntimeError if it fails."""
     env = {
-        **os.environ,
+        **experiments.CALLER_ENVIRONMENT,
         "PYTHONPATH": os.pathsep.join(filter(None, (tree, os.environ.get("PYTHONPATH")))),
         "BIDAL_JAX_CACHE": cache,
         # for what compiles before the run sets its cache, and commits without that setting

@@ -49,10 +49,9 @@ import os
 import shlex
 import subprocess
 import sys
-from typing import Any, NamedTuple, Sequence
+from typing import Sequence
 
 import jax
-import numpy as np
 
 import envs_mjx
 from bidal_jax.config import ConfigError, option
@@ -61,54 +60,27 @@ from experiments import cli, cluster, report
 from experiments.paper import grid
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import DEFAULT_SEED, paper_epochs
+from experiments.paper.rungs import (
+    ABOUT,
+    DEFAULT_OUT,
+    DEFAULT_SEEDS,
+    LAST_N,
+    MULTIMODAL,
+    NOT_RUN,
+    PROBE_FILE,
+    RUNGS,
+    TASK,
+    VISUAL,
+    ladder_arms,
+    loaded_runs,
+    probe_summary,
+    read_probes,
+    table_text,
+)
 from experiments.probes import encoder
 
 PROG = "python -m experiments.paper.ladder"
-TASK = "nicol_slide"
-DEFAULT_OUT = os.path.join("results", "ladder")
-DEFAULT_SEEDS = 5  # the image rung is also the visual agents' 5-seed pilot on the task
-LAST_N = 10
-CLOSE = 0.05  # a rung closes the gap when its final success is at least the top rung's less this
 PROBE_EPISODES = 200  # scripted episodes of the probe's frames: 10,000 frames, a fifth of the episodes held out
-PROBE_FILE = "probe.json"
-NOT_RUN = "not run"
-COLUMNS = ("baseline", "bidal")
-
-
-class Rung(NamedTuple):
-    """A rung: its folder name, env, the agents of its two columns (baseline, BidAL) and what they observe."""
-
-    name: str
-    env: str
-    agents: tuple[str, str]
-    observes: str
-
-
-VISUAL, MULTIMODAL = ("visual_baseline", "visual_bidal"), ("multimodal_baseline", "multimodal_bidal")
-RUNGS = (
-    Rung("image", TASK, VISUAL, "image"),
-    Rung("ee", "nicol_slide_ee", MULTIMODAL, "image + ee_pos"),
-    Rung("ee_obj", "nicol_slide_ee_obj", MULTIMODAL, "image + ee_pos + obj_pos"),
-    Rung("proprio", TASK, MULTIMODAL, "image + all proprio (the multimodal agents)"),
-)
-TOP = RUNGS[-1]
-ABOUT = (f"What the pixel agents lack on {TASK}: the baseline (DDPG + HER) and BidAL agents with the image alone (the "
-         "visual agents), then with the hand's position `ee_pos` beside it (env nicol_slide_ee, through the multimodal "
-         "encoder), then with the cube's position `obj_pos` too (nicol_slide_ee_obj), then with all proprio (the "
-         f"multimodal agents); {DEFAULT_SEEDS} seeds a cell at the task's budget. Cells: final / AUC (each seed's "
-         f"final). A rung closes the gap when its final is within {CLOSE} of the top rung's. Then a linear probe of "
-         "the trained, frozen encoders (ridge regression from φ(s) to the true positions on held-out frames of "
-         "scripted episodes), against the same architecture randomly initialised. results/ladder/table.md has the "
-         "probe of every cell, of φ and of the vision branch alone.")
-
-
-def ladder_arms(rungs: Sequence[Rung], seeds: int, seed: int, epochs: int | None, extra: dict[str, Any],
-                out: str) -> list[Arm]:
-    """The ladder's cells in OUT/<rung>/<agent>, rung by rung, each `epochs` or else nicol_slide's budget."""
-    return [Arm(f"{rung.name}/{agent}", {"env": rung.env, "agent": agent, "seeds": seeds, "seed": seed, **extra,
-                                         "epochs": epochs or paper_epochs()[TASK],
-                                         "run_dir": os.path.join(out, rung.name, agent)})
-            for rung in rungs for agent in rung.agents]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,18 +109,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 # ----- the probe ------------------------------------------------------------------------------------------------
 
-
-def read_probes(out: str) -> dict:
-    """OUT/probe.json's cells (arm name -> its probe entry); {} where the ladder has none. RunError naming a damaged
-    file."""
-    path = os.path.join(out, PROBE_FILE)
-    if not os.path.isfile(path):
-        return {}
-    try:
-        with open(path, encoding="utf-8") as f:
-            return dict(json.load(f)["cells"])
-    except (ValueError, KeyError, TypeError) as err:
-        raise report.RunError(f"{path}: unreadable probe file ({err})") from None
 
 
 def to_probe(arms: Sequence[Arm], probes: dict) -> list[Arm]:
@@ -184,156 +144,6 @@ def probe_arms(arms: Sequence[Arm], out: str, episodes: int, seed: int) -> None:
         with rundir.writing(path):
             runfiles.write_atomic(path, json.dumps({"cells": probes}, indent=1) + "\n")
         print(f"probe: {arm.name}: {probe_summary(probes[arm.name], 'trained', 'phi')}", flush=True)
-
-
-def axes(values: list[list[float | None]], digits: int = 2) -> str:
-    """Per-seed values [S][3] as their mean over seeds per axis, "x, y, z"; "—" for an axis without a value (an R² the
-    probe leaves undefined: a target that hardly varies along it)."""
-    columns = zip(*values)
-    return ", ".join("—" if None in column else f"{np.mean(column):.{digits}f}" for column in columns)
-
-
-def probe_summary(entry: dict, encoding: str, features: str) -> str:
-    """One encoder's probe from one feature set: "obj_pos R² x, y, z (RMSE x, y, z cm); ee_pos ..."."""
-    found = entry[encoding][features]
-    return "; ".join(f"{target} R² {axes(found[target]['r2'])} ({axes(found[target]['rmse_cm'], 1)} cm)"
-                     for target in found)
-
-
-def probe_table(arms: Sequence[Arm], probes: dict) -> str:
-    """Markdown: per probed cell, encoder (trained, random init) and feature set (φ, the vision branch alone), the
-    mean over seeds of R² and RMSE (cm) per axis x, y, z, for obj_pos and ee_pos."""
-    rows = []
-    for arm in (a for a in arms if a.name in probes):
-        entry = probes[arm.name]
-        for encoding in ("trained", "random"):
-            for features, named in (("phi", "φ(s)"), ("image", "vision branch")):
-                found = entry[encoding][features]
-                rows.append([arm.name, f"{encoding}, step {entry['step']}" if encoding == "trained" else "random init",
-                             named, *(axes(found[t][k], d) for t in ("obj_pos", "ee_pos")
-                                      for k, d in (("r2", 2), ("rmse_cm", 1)))])
-    head = ["cell", "encoder", "features", "obj_pos R² (x, y, z)", "obj_pos RMSE (cm)", "ee_pos R² (x, y, z)",
-            "ee_pos RMSE (cm)"]
-    return report.markdown_table(head, rows)
-
-
-# ----- the tables -----------------------------------------------------------------------------------------------
-
-
-def finals(run: dict, last_n: int) -> np.ndarray:
-    """Each seed's mean success over its last `last_n` epochs [S]."""
-    return run["success"][-last_n:].mean(axis=0)
-
-
-def cell(arm: Arm, run: dict | None, last_n: int, stale: bool) -> str:
-    """A cell: "final ± std / AUC (each seed's final)", how far an unfinished run got, † when stale; `NOT_RUN`."""
-    if run is None:
-        return NOT_RUN
-    curve = report.curves([run], labels={run["dir"]: arm.name})[0]
-    done = int(run["epoch"][-1])
-    progress = "" if done >= arm.epochs else f", epoch {done} of {arm.epochs}"
-    per_seed = ", ".join(f"{v:.3f}" for v in finals(run, last_n))
-    return (f"{report.final_cell(curve, last_n)} / {report.normalized_auc(curve):.3f} ({per_seed}){progress}"
-            + (grid.STALE if stale else ""))
-
-
-def success_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Sequence[str]) -> str:
-    """Markdown, a rung a row: what its agents observe, its env, and each column's cell (`cell`)."""
-    by_name = {arm.name: arm for arm in arms}
-    rows = []
-    for rung in RUNGS:
-        cells = [by_name[f"{rung.name}/{agent}"] for agent in rung.agents if f"{rung.name}/{agent}" in by_name]
-        if cells:
-            rows.append([rung.observes, rung.env, *(
-                f"{arm.given['agent']}: {cell(arm, runs.get(arm.name), last_n, arm.name in stale)}" for arm in cells)])
-    head = ["input", "env", *(f"{column}: final / AUC (per seed)" for column in COLUMNS)]
-    return report.markdown_table(head, rows)
-
-
-def gap_line(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
-    """Per column, the first rung below the top whose finished run's final success is at least the top rung's less
-    `CLOSE`, computed from the runs; what is missing where it cannot be said."""
-    by_name = {arm.name: arm for arm in arms}
-    parts = []
-    for i, column in enumerate(COLUMNS):
-        def final(rung: Rung) -> float | None:
-            arm = by_name.get(f"{rung.name}/{rung.agents[i]}")
-            run = runs.get(arm.name) if arm else None
-            return None if run is None or run["epoch"][-1] < arm.epochs else float(finals(run, last_n).mean())
-
-        top = final(TOP)
-        if top is None:
-            parts.append(f"{column}: not measured ({TOP.name}/{TOP.agents[i]}, the level to reach, is not finished)")
-            continue
-        measured = [(rung, f) for rung in RUNGS[:-1] if (f := final(rung)) is not None]
-        closing = next(((rung, f) for rung, f in measured if f >= top - CLOSE), None)
-        missing = [rung.name for rung in RUNGS[:-1] if final(rung) is None]
-        unmeasured = f" ({', '.join(missing)} not finished)" if missing else ""
-        if closing:
-            rung, f = closing
-            parts.append(f"{column}: {rung.observes} closes it ({rung.agents[i]} {f:.3f} against {top:.3f})")
-        else:
-            parts.append(f"{column}: no rung below {TOP.name} closes it ({top:.3f} to reach){unmeasured}")
-    return f"Closes the gap (final within {CLOSE} of the {TOP.name} rung's): " + "; ".join(parts) + "."
-
-
-def probe_line(probes: dict) -> str:
-    """The probe of the visual agents' φ, trained and randomly initialised, in one line; that it was not run."""
-    image = [f"{RUNGS[0].name}/{agent}" for agent in RUNGS[0].agents]
-    probed = [name for name in image if name in probes]
-    if not probed:
-        return f"Linear probe of the visual agents' φ: {NOT_RUN}."
-    entry = probes[probed[0]]
-    parts = [f"{name.split('/')[1]} {probe_summary(probes[name], 'trained', 'phi')}" for name in probed]
-    parts.append(f"random init {probe_summary(entry, 'random', 'phi')}")
-    return (f"Linear probe of the visual agents' φ on held-out frames ({entry['frames'][1]:,} of {entry['episodes']} "
-            "scripted episodes), mean over seeds, R² per axis x, y, z (RMSE): " + "; ".join(parts) + ".")
-
-
-def loaded_runs(arms: Sequence[Arm]) -> dict[str, dict]:
-    return {arm.name: run for arm in arms if (run := grid.loaded(arm.run_dir))}
-
-
-def docs_table(out: str) -> str:
-    """docs/results.md's ladder section (`results_docs`): the success table of the runs in `out` (the default cells:
-    `DEFAULT_SEEDS` seeds at the budget; stale runs marked), the gap line and the probe line."""
-    arms = ladder_arms(RUNGS, DEFAULT_SEEDS, DEFAULT_SEED, None, {}, out)
-    runs = loaded_runs(arms)
-    stale = grid.stale_runs(arms, runs, grid.physics_today({arm.given["env"] for arm in arms})) if runs else []
-    lines = f"{gap_line(arms, runs, LAST_N)} {probe_line(read_probes(out))}"
-    return f"{success_table(arms, runs, LAST_N, stale)}\n\n{lines}"
-
-
-def table_text(arms: Sequence[Arm], runs: dict[str, dict], probes: dict, last_n: int, stale: Sequence[str],
-               command: str) -> str:
-    """table.md: the success table, the gap line, the stale note, the probe's table, and the command that rewrites
-    it."""
-    lines = [
-        f"# The pixel agents' ladder on {TASK}",
-        "",
-        f"Final: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; AUC: the "
-        "mean of the seed-mean success over the epochs run; in brackets each seed's final.",
-        "",
-        success_table(arms, runs, last_n, stale),
-        "",
-        gap_line(arms, runs, last_n),
-        "",
-        *([f"{grid.STALE} stale: {', '.join(stale)}, {grid.STALE_WHY}.", ""] if stale else []),
-        "## Linear probe of the encoders",
-        "",
-        "Ridge regression from the features of a frame to the true positions (experiments/probes/encoder.py), fitted "
-        "on the frames of four fifths of the scripted episodes and scored on the others; the mean over seeds. φ(s) "
-        "is what the actor and critic read (image and the cell's proprio); the vision branch is the image's part of "
-        "the encoder alone. Random init: the same architecture with fixed keys and the run's normaliser.",
-        "",
-        probe_table(arms, probes) if probes else f"Probe: {NOT_RUN}.",
-        "",
-        grid.gaps(arms, runs),
-        "",
-        f"Regenerate from the run folders: `{command}`",
-        "",
-    ]
-    return "\n".join(lines)
 
 
 # ----- the record (figures.json) --------------------------------------------------------------------------------

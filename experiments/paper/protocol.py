@@ -23,7 +23,7 @@ import chex
 import numpy as np
 
 import envs_mjx
-from experiments import cli, report
+from experiments import cli, report, stats
 
 
 # ----- learning curves (Fig. 4) ---------------------------------------------------------------
@@ -113,8 +113,6 @@ def residual_spread(curve: report.Curve, last_n: int) -> np.ndarray:
 
 def trend(curve: report.Curve, last_n: int) -> tuple[float, float, float]:
     """(mean, low, high): the Student-t 95 % interval over runs of their fitted slopes per epoch (`window_fit`)."""
-    from experiments import stats
-
     return stats.student_interval(window_fit(curve, last_n)[0])
 
 

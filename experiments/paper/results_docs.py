@@ -29,7 +29,7 @@ import envs_mjx
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
-from experiments.paper import grid, ladder, protocol
+from experiments.paper import grid, protocol, rungs
 
 PROG = "python -m experiments.paper.results_docs"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -249,7 +249,7 @@ def resumed_table(root: str, runs: str) -> str:
 def ladder_table(root: str, runs: str) -> str:
     """The pixel agents' ladder (`experiments.paper.ladder`) in root/runs: its rungs' success, the rung that closes
     the gap, the probe of the visual agents' φ; "not run" where its runs or its probe are not there yet."""
-    return ladder.docs_table(os.path.join(root, runs))
+    return rungs.docs_table(os.path.join(root, runs))
 
 
 TABLES: dict[str, Callable[[str, object], str]] = {

@@ -36,7 +36,6 @@ from bidal_jax.config import Config
 from bidal_jax.networks import Encoder, VisionBranch
 from bidal_jax.run.policy import load_policy
 from experiments.probes import phases
-from experiments.probes.vision import FRAME_CHUNK
 
 TARGETS = ("obj_pos", "ee_pos")  # what the probe reads: proprio segments of 3 coordinates (m)
 FEATURES = ("phi", "image")  # φ(s), and the vision branch's output
@@ -70,11 +69,8 @@ class Encoding(NamedTuple):
 
 def slide_frames(env, episodes: int, key: jax.Array) -> Frames:
     """Every frame of `episodes` scripted episodes of the NICOL env `env` (`phases.nicol_rollouts`, action noise
-    `phases.SCRIPT_NOISE`), simulated `FRAME_CHUNK` episodes at a time."""
-    chunks = [phases.nicol_rollouts(env, min(FRAME_CHUNK, episodes - i), phases.SCRIPT_NOISE,
-                                    jax.random.fold_in(key, i), lambda s: (s.obs["image"], s.obs["proprio"]))[0]
-              for i in range(0, episodes, FRAME_CHUNK)]
-    image, proprio = (np.concatenate(parts) for parts in zip(*chunks))
+    `phases.SCRIPT_NOISE`), simulated `phases.FRAME_CHUNK` episodes at a time."""
+    (image, proprio), _ = phases.chunked_rollouts(env, episodes, key, lambda s: (s.obs["image"], s.obs["proprio"]))
     return Frames(image, proprio, np.arange(len(image)) // env.episode_length, env.observation_spec)
 
 

@@ -41,12 +41,11 @@ from mujoco import mjx
 import envs_mjx
 from bidal_jax.config import ConfigError
 from envs_mjx.base import IMAGE_SHAPE, Env
-from envs_mjx.camera import VISIBLE_GROUPS, Camera
+from envs_mjx.camera import VISIBLE_GROUPS, Camera, subtree_geoms
 from envs_mjx.nicol import NicolEnv, NicolLift
 from envs_mjx.planar_reach import LINK_LENGTH, PlanarReach
 from envs_mjx.planar_reach import forward_kinematics as planar_fk
 from experiments import cli
-from experiments.probes.visibility import subtree_geoms
 
 PROG = "python -m experiments.probes.resolvability"
 CONTRACT_PX = 1.5  # px per ε in the lowest decile over the goal region (planar_reach's level)

@@ -26,13 +26,12 @@ import sys
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 import envs_mjx
 from bidal_jax.config import ConfigError
 from envs_mjx.base import Env
-from envs_mjx.camera import visible_geoms
+from envs_mjx.camera import subtree_geoms, visible_geoms
 from envs_mjx.nicol import NicolEnv
 from experiments import cli
 from experiments.probes.phases import PHASES_NICOL, SCRIPT_NOISE, nicol_rollouts
@@ -40,15 +39,6 @@ from experiments.probes.phases import PHASES_NICOL, SCRIPT_NOISE, nicol_rollouts
 PROG = "python -m experiments.probes.visibility"
 VISIBLE_PX = 3.0  # pixels a body must cover to count as seen
 RANDOM_STEPS = 10  # random actions before a reaching frame of the `moving` phase
-
-
-def subtree_geoms(mj_model: mujoco.MjModel, body: str) -> tuple[int, ...]:
-    """Ids of the geoms of body `body` and of every body below it."""
-    root = mj_model.body(body).id
-    inside = np.zeros(mj_model.nbody, bool)
-    for b in range(mj_model.nbody):  # parents precede children in MuJoCo's body order
-        inside[b] = b == root or (b > 0 and inside[mj_model.body_parentid[b]])
-    return tuple(int(g) for g in np.nonzero(inside[mj_model.geom_bodyid])[0])
 
 
 def body_groups(env: Env) -> dict[str, tuple[int, ...]]:

@@ -67,7 +67,6 @@ from experiments.probes import phases
 
 PROG = "python -m experiments.probes.vision"
 HELD_OUT = 0.2  # share of the frames the probe is tested on
-FRAME_CHUNK = 256  # frames simulated at once (vmapped): 16,000 NICOL envs stepped at once need over 20 GB
 PHASE_FRAMES_PER_EPISODE = 8  # scripted episodes run per frame asked for in a phase (`--phase`): at least this many
 ACHIEVED_GOAL = "achieved_goal"  # the default target; any other is a proprio segment's name
 
@@ -96,7 +95,7 @@ def frames(env, key: jax.Array, n: int, random_steps: int = 0,
         state, _ = jax.lax.scan(lambda s, a: (env.step(s, a), None), env.reset(k), actions)
         return state.obs
 
-    obs = jax.jit(lambda keys: jax.lax.map(observe, keys, batch_size=FRAME_CHUNK))(jax.random.split(key, n))
+    obs = jax.jit(lambda keys: jax.lax.map(observe, keys, batch_size=phases.FRAME_CHUNK))(jax.random.split(key, n))
     labels = obs[ACHIEVED_GOAL] if target == ACHIEVED_GOAL else obs["proprio"][
         :, env.observation_spec.segment_slice(target)]
     chex.assert_rank(labels, 2)
@@ -115,10 +114,7 @@ def phase_frames(env, key: jax.Array, n: int, phase: str, target: str = ACHIEVED
 
     key_episodes, key_order = jax.random.split(key)
     episodes = -(-n // PHASE_FRAMES_PER_EPISODE)
-    chunks = [phases.nicol_rollouts(env, min(FRAME_CHUNK, episodes - i), phases.SCRIPT_NOISE,
-                                        jax.random.fold_in(key_episodes, i), record)
-              for i in range(0, episodes, FRAME_CHUNK)]
-    (images, labels), phase_of = jax.tree.map(lambda *parts: np.concatenate(parts), *chunks)
+    (images, labels), phase_of = phases.chunked_rollouts(env, episodes, key_episodes, record)
     keep = np.flatnonzero(phase_of == phases.PHASES_NICOL.index(phase))
     order = keep[np.asarray(jax.random.permutation(key_order, len(keep)))[:n]]
     return images[order], labels[order]

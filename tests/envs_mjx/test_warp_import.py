@@ -1,5 +1,6 @@
-"""envs_mjx imports mujoco.mjx without MuJoCo Warp and gives it Warp when an env steps on it (envs_mjx/__init__.py):
-checked in a fresh interpreter, since this one may have imported warp already."""
+"""The project's processes import mujoco.mjx without MuJoCo Warp (experiments.start_process) and give it Warp when an
+env steps on it (envs_mjx.enable_warp): checked in a fresh interpreter, since this one may have imported warp
+already."""
 
 import subprocess
 import sys
@@ -7,8 +8,8 @@ import textwrap
 
 CHECK = textwrap.dedent("""
     import importlib.util, sys
-    import envs_mjx
-    assert "warp" not in sys.modules, "envs_mjx imported warp"
+    import experiments, envs_mjx
+    assert "warp" not in sys.modules, "the process imported warp"
     import mujoco.mjx.warp as mjx_warp
     assert not mjx_warp.WARP_INSTALLED
     if importlib.util.find_spec("warp") is None:

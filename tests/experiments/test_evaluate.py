@@ -1,6 +1,8 @@
 """The evaluate command (experiments/evaluate.py): with the run's evaluation key it reproduces the
 run's logged eval success, it prints each seed's success with an interval, and a video renders on CPU."""
 
+import warnings
+
 import imageio.v2 as imageio
 import numpy as np
 import pytest
@@ -44,12 +46,24 @@ def test_evaluate_command_prints_per_seed_success_and_an_interval(finished, caps
 def test_video_renders_mujoco_beside_the_agents_view(finished, tmp_path):
     run_dir, _ = finished
     path = str(tmp_path / "episode.mp4")
-    assert (
-        evaluate.main(["--run-dir", run_dir, "--episodes", "2", "--video", path, "--video-episodes", "1", "--quiet"])
-        == 0
-    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code = evaluate.main(["--run-dir", run_dir, "--episodes", "2", "--video", path, "--video-episodes", "1",
+                              "--quiet"])
+    assert code == 0
     frames = imageio.mimread(path, memtest=False)
     assert len(frames) == 51  # the start and 50 steps
     height, width, channels = frames[0].shape
     assert (height, channels) == (240, 3) and width == 320 + 5 * 42
-    assert np.asarray(frames[0])[:, :320].std() > 1.0  # MuJoCo drew a scene
+    mujoco_half = np.asarray(frames[0])[:, :320]
+    assert mujoco_half.std() > 1.0  # MuJoCo drew a scene
+    assert mujoco_half.mean() > 50  # lit for people (`evaluate.lit`): the arm on a light floor, not on black
+    assert not [w for w in caught if "fork" in str(w.message)]  # ffmpeg started without forking JAX's process
+
+
+def test_the_videos_lighting_draws_a_copy_and_leaves_the_envs_model_alone(env):
+    headlight, rgba = env.mj_model.vis.headlight.diffuse.copy(), env.mj_model.geom_rgba.copy()
+    model = evaluate.lit(env.mj_model)
+    np.testing.assert_allclose(model.vis.headlight.diffuse, evaluate.HEADLIGHT[1])
+    np.testing.assert_array_equal(env.mj_model.vis.headlight.diffuse, headlight)  # what the physics' fingerprint
+    np.testing.assert_array_equal(env.mj_model.geom_rgba, rgba)  # hashes, and what the agent's camera reads

@@ -38,6 +38,12 @@ def test_cli_writes_the_png_and_the_plotted_numbers(two_runs, tmp_path, capsys):
     assert "| ur5_reach | multimodal_bidal | 2 | 3 | 0.700 ± 0.100 | 0.567 |" in out  # seeds: 0.6, 0.8
 
 
+def test_out_names_the_figure_and_its_numbers_go_beside_it(two_runs, tmp_path):
+    (tmp_path / "figures").mkdir()
+    assert plot.main([two_runs[1], "--out", str(tmp_path / "figures" / "fig.png")]) == 0
+    assert sorted(p.name for p in (tmp_path / "figures").iterdir()) == ["fig.csv", "fig.png"]
+
+
 def test_x_axis_epoch(two_runs, tmp_path):
     prefix = str(tmp_path / "by_epoch")
     assert plot.main([two_runs[1], "--out", prefix, "--x", "epoch"]) == 0

@@ -17,9 +17,10 @@ import jax
 import pytest
 
 import envs_mjx
-from bidal_jax.config import AGENTS, ConfigError, resolve
+from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import checkpoint, loop, memory
 from experiments import cli, run
+from experiments.cli import resolve
 from tests.helpers import FINISHED, FINISHED_EPOCHS, TINY, rows, snapshot
 
 MiB, GiB = 2**20, 2**30

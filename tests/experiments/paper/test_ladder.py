@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from experiments.paper import ladder
+from experiments.paper import ladder, rungs
 from tests.conftest import TODAY, write_fake_run
 
 EXPERIMENT = ["--seeds", "2", "--epochs", "3", "--last-n", "2", "--quiet"]
@@ -90,7 +90,7 @@ def test_the_table_computes_which_rung_closes_the_gap_and_shows_the_probe(tmp_pa
     assert section["table"] == "ladder" and section["figure"] == "curves.png"
     assert (section["command"], section["date"]) == (ladder.PROG, ladder.NOT_RUN)  # --report records no command
     assert section["machine"] == "machine not recorded, physics not recorded"
-    docs = ladder.docs_table(str(out))  # docs/results.md's: the default cells (3 seeds, the budget): not these runs
+    docs = rungs.docs_table(str(out))  # docs/results.md's: the default cells (3 seeds, the budget): not these runs
     assert docs.count("†") == 8 and docs.count(", epoch 3 of 30") == 8 and ladder.NOT_RUN not in docs
     assert "baseline: not measured (proprio/multimodal_baseline, the level to reach, is not finished)" in docs
     assert ("Linear probe of the visual agents' φ on held-out frames (2,000 of 200 scripted episodes), mean over "
@@ -129,4 +129,4 @@ def test_the_record_adds_each_new_command_once():
 
 
 def test_an_axis_without_r2_reads_as_a_dash():
-    assert ladder.axes([[0.5, None, 0.25], [0.7, None, 0.75]]) == "0.60, —, 0.50"
+    assert rungs.axes([[0.5, None, 0.25], [0.7, None, 0.75]]) == "0.60, —, 0.50"

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from bidal_jax import normalizer
-from bidal_jax.config import resolve
 from envs_mjx.base import ObservationSpec
 from envs_mjx.nicol import PROPRIO_SEGMENTS
+from experiments.cli import resolve
 from experiments.probes import encoder
 
 TINY = {"conv_channels": 2, "vision_features": 4, "latent_size": 3, "conv_impl": "patch", "vision_dtype": "float32"}
