@@ -38,6 +38,7 @@ import glob
 import json
 import os
 import re
+import subprocess
 from collections import Counter
 from typing import Callable, Mapping, Sequence
 
@@ -51,6 +52,24 @@ SEED_COLUMN = re.compile(r"eval_success_seed(\d+)$")
 BLOCK = re.compile(r"seeds-(\d+)-(\d+)$")  # a block's folder in its cell's: the indices of its first and last seed
 AIR = "eval_success_air"  # nicol_lift's success over its air goals alone (`Env.goal_subsets`)
 WITH_COMPILE = "wall_time_with_compile"
+ENGINES = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}  # a run's physics engine (config.json's physics_engine) by name
+NOT_RECORDED = "not recorded"
+
+
+def checkout_commit() -> str:
+    """The short hash of this checkout's HEAD, with " + changes" where tracked files differ from it, for a results
+    record; `NOT_RECORDED` outside a git checkout or without git."""
+    here = os.path.dirname(os.path.abspath(__file__))
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", here, *args], capture_output=True, text=True, timeout=10).stdout.strip()
+
+    try:
+        head = git("rev-parse", "--short", "HEAD")
+        changed = bool(head) and bool(git("status", "--porcelain", "--untracked-files=no"))
+    except (OSError, subprocess.SubprocessError):
+        return NOT_RECORDED
+    return head + " + changes" * changed if head else NOT_RECORDED
 FLOORS = os.path.join("results", "floors")  # where `python -m experiments.probes.floors` writes the floors
 FLOORS_FILE = "figures.json"
 ALPHA = 0.05  # the level of the per-seed test against the floor (`seeds_above`)

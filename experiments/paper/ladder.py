@@ -47,7 +47,6 @@ import datetime
 import json
 import os
 import shlex
-import subprocess
 import sys
 from typing import Sequence
 
@@ -149,23 +148,14 @@ def probe_arms(arms: Sequence[Arm], out: str, episodes: int, seed: int) -> None:
 # ----- the record (figures.json) --------------------------------------------------------------------------------
 
 
-def git_commit() -> str:
-    """The checkout's short commit, "not recorded" outside a git checkout."""
-    try:
-        found = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                               cwd=os.path.dirname(os.path.abspath(__file__)), timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return "not recorded"
-    return found.stdout.strip() if found.returncode == 0 and found.stdout.strip() else "not recorded"
-
-
 def machines(runs: dict[str, dict]) -> str:
     """The machines and physics engines the runs' config.json records, distinct, or `NOT_RUN`."""
-    engines = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}
-    found = dict.fromkeys(
-        f"{' then '.join(run['config'].get('hardware') or ['machine not recorded'])}, "
-        f"{' then '.join(engines.get(e, e) for e in run['config'].get('physics_engine') or ['physics not recorded'])}"
-        for run in runs.values())
+    def named(run: dict) -> str:
+        engines = run["config"].get("physics_engine") or ["physics not recorded"]
+        return (f"{' then '.join(run['config'].get('hardware') or ['machine not recorded'])}, "
+                f"{' then '.join(report.ENGINES.get(e, e) for e in engines)}")
+
+    found = dict.fromkeys(named(run) for run in runs.values())
     return "; ".join(found) or NOT_RUN
 
 
@@ -184,7 +174,7 @@ def section(previous: dict | None, runs: dict[str, dict], command: str | None) -
     if command is not None:
         record = {"command": joined(record["command"], command),
                   "date": joined(record["date"], datetime.date.today().isoformat()),
-                  "commit": joined(record["commit"], git_commit())}
+                  "commit": joined(record["commit"], report.checkout_commit())}
     return {"part": "Learning (paper Fig. 4)", "title": "A ladder for the pixel agents", "about": ABOUT,
             "command": record["command"] or PROG, "machine": machines(runs), "date": record["date"] or NOT_RUN,
             "commit": record["commit"] or NOT_RUN, "table": "ladder", "runs": "ladder",

@@ -41,7 +41,6 @@ FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", 
            "ladder", "noise", "noise_probe", "transfer", "reliability")
 FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
 LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
-ENGINES = {"jax": "MJX-JAX", "warp": "MuJoCo Warp"}
 HEAD = f"""<!-- written by `{PROG}` from results/*/figures.json and the runs beside them: edit those -->
 # Results
 
@@ -84,7 +83,7 @@ def epochs_table(root: str, runs: str) -> str:
         lines = grid.read_lines(path)
         epoch, compile_s = grid.sweep_seconds(lines)
         rows.append((envs_mjx.names().index(task), list(AGENTS).index(agent), [
-            task, agent, str(len(lines[0]["eval_success_seeds"])), ENGINES[lines[0]["engine"]], f"{epoch:.2f}",
+            task, agent, str(len(lines[0]["eval_success_seeds"])), report.ENGINES[lines[0]["engine"]], f"{epoch:.2f}",
             f"{compile_s:.1f}"]))
     head = ["task", "agent", "seeds", "physics", "epoch (s)", "compile (s)"]
     return report.markdown_table(head, [cells for *_, cells in sorted(rows)])

@@ -21,7 +21,6 @@ import argparse
 import datetime
 import json
 import os
-import subprocess
 import sys
 from typing import Sequence
 
@@ -38,16 +37,6 @@ PROG = "python -m experiments.probes.floors"
 RESETS = 200_000
 # idle episodes: NICOL's 2,048 hold each goal subset's half-width within 0.005 (about 1,000 episodes a subset)
 ROLLOUTS = {"planar_reach": 50_000, "ur5_reach": 50_000, "nicol_slide": 2_048, "nicol_lift": 2_048}
-
-
-def commit() -> str:
-    """The short hash of the checkout's HEAD, "+ changes" where it has uncommitted ones; "unknown" outside git."""
-    def git(*args: str) -> str:
-        here = os.path.dirname(os.path.abspath(__file__))
-        return subprocess.run(["git", "-C", here, *args], capture_output=True, text=True).stdout.strip()
-
-    head = git("rev-parse", "--short", "HEAD")
-    return (head + (" + changes" if git("status", "--porcelain", "--untracked-files=no") else "")) or "unknown"
 
 
 def section(found: dict[str, dict[str, floors.Floor]], command: str, at: str) -> dict:
@@ -93,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         runfiles.check_output_dir(os.path.dirname(os.path.normpath(args.out)), "--out")  # its parent: before the work
     except ValueError as err:
         return cli.exit_code(err)
-    key, at = jax.random.key(args.seed), commit()  # the code as it was when the estimate began
+    key, at = jax.random.key(args.seed), report.checkout_commit()  # the code as it was when the estimate began
     found = {}
     for i, task in enumerate(tasks):
         found[task] = floors.floor(envs_mjx.make(task, render=False), jax.random.fold_in(key, i),
