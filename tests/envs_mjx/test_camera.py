@@ -77,8 +77,9 @@ def test_only_fixed_cameras_are_accepted():
 
 @pytest.mark.parametrize("name", ["planar_reach", "nicol_lift"])
 def test_render_equals_mjx_ray_cast_per_pixel(name):
-    """The fused renderer sees what `mjx.ray` sees, ray by ray, over random poses (on the CPU up to ties of
-    equal distances; a GPU rounds some ray-grazing silhouette rays differently, docs/results.md)."""
+    """The fused renderer sees what `mjx.ray` sees, ray by ray, over random poses (on the CPU up to ties: two geoms
+    hit within the relative `camera.TIE`, where the camera keeps the one it merges first and `mjx.ray` the nearer;
+    a GPU rounds some ray-grazing silhouette rays differently, docs/results.md)."""
     env = envs_mjx.make(name)
     cam, model = env.camera, env.mjx_model
     hinges = env.mj_model.jnt_qposadr[env.mj_model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE]
@@ -97,8 +98,8 @@ def test_render_equals_mjx_ray_cast_per_pixel(name):
 
     ids, reference, image = (np.asarray(x) for x in both(jax.random.split(jax.random.PRNGKey(0), 8)))
     assert len(np.unique(ids)) >= 4  # several geoms in view, not a blank frame
-    # the same first hit ray by ray, except where two geoms are hit at equal distances up to rounding (where
-    # link capsules overlap at a joint): at most 1 ray in 10,000
+    # the same first hit ray by ray, except where two geoms are hit at distances within `TIE` (where link capsules
+    # overlap at a joint or cross): at most 1 ray in 10,000
     assert (ids != reference).mean() <= 1e-4, np.argwhere(ids != reference)
     # each pixel is the rounded mean gray level of its supersample² rays
     k = cam.supersample
