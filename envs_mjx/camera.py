@@ -22,8 +22,16 @@ intersection functions and geoms; tests/envs_mjx/test_camera.py compares them), 
   construction from sampled poses; a geom whose box does not fit its window (too close to the
   camera) is detected exactly, and a batch of envs in which any does is cast in full instead
   (`jax.custom_batching.custom_vmap` decides once per batch, so vmapped envs do not pay for
-  both). The frame is the same, ray for ray, as casting every ray
-  (tests/envs_mjx/test_camera.py).
+  both). The frame is the same, bit for bit, as casting every ray (tests/envs_mjx/test_env_contract.py);
+- ties: XLA contracts a multiply and an add into one fused multiply-add (one rounding) wherever both land
+  in one fused kernel, and which pairs do depends on the program (window or frame, one scene or a batch),
+  so one ray's distance to a geom may differ by a few 1e-6 between programs. Two geoms hit at the same
+  distance (overlapping capsule caps at a joint) would then keep one geom in one program and the other in
+  another; so a geom takes a ray from the running nearest only if nearer by more than the relative `TIE`
+  (1e-4, 0.1 mm at 1 m), and of two tied geoms the one merged first keeps the ray in every program. Only
+  a gap within rounding of `TIE` itself, or a ray grazing two coincident geoms, could still round apart
+  (none over the tests' scenes). Where `mjx.ray` keeps the strictly nearer, the camera keeps the first of
+  geoms within `TIE`.
 
 Only geoms of groups 0–2 (MuJoCo's visible groups) with nonzero alpha are seen, as with
 `mjx.ray(geomgroup=VISIBLE_GROUPS)`; put collision-only geoms in group 3+. Like `mjx.ray`,
@@ -44,6 +52,9 @@ from mujoco.mjx._src import ray as mjx_ray  # mjx.ray's per-type intersection fu
 
 VISIBLE_GROUPS = (1, 1, 1, 0, 0, 0)
 LUMA = np.array([0.299, 0.587, 0.114])
+# relative difference of distance below which two geoms tie on a ray (`nearest`): far above the rounding that
+# differently compiled programs give the same hit (a few 1e-6), far below a ray's spacing
+TIE = 1e-4
 # the geom types mjx.ray draws, in its order (its arg-min keeps the first of equal distances)
 RAY_TYPES = tuple(int(t) for t in (mujoco.mjtGeom.mjGEOM_PLANE, mujoco.mjtGeom.mjGEOM_SPHERE,
                                    mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_ELLIPSOID,
@@ -100,8 +111,10 @@ def cast(directions: jax.Array, origin: jax.Array, geom_type: int, size: jax.Arr
 
 
 def nearest(dist: jax.Array, label: jax.Array, hit: jax.Array, value) -> tuple[jax.Array, jax.Array]:
-    """Merge one geom's distances `hit` (labelled `value`) into the running nearest (dist, label)."""
-    closer = hit < dist
+    """Merge one geom's distances `hit` (labelled `value`) into the running nearest (dist, label): the geom takes
+    a ray only where it is nearer by more than the relative `TIE`, so of two geoms hit at the same distance up to
+    rounding the one merged first keeps the ray, however the compiled program rounds (module docstring, "ties")."""
+    closer = hit * (1.0 + TIE) < dist
     return jnp.where(closer, hit, dist), jnp.where(closer, jnp.asarray(value, label.dtype), label)
 
 

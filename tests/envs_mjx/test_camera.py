@@ -9,7 +9,7 @@ import pytest
 from mujoco import mjx
 
 import envs_mjx
-from envs_mjx.camera import VISIBLE_GROUPS, Camera, area_average, geom_gray_levels
+from envs_mjx.camera import TIE, VISIBLE_GROUPS, Camera, area_average, cast, geom_gray_levels
 from envs_mjx.planar_reach import TARGET_HEIGHT, forward_kinematics
 
 
@@ -77,8 +77,9 @@ def test_only_fixed_cameras_are_accepted():
 
 @pytest.mark.parametrize("name", ["planar_reach", "nicol_lift"])
 def test_render_equals_mjx_ray_cast_per_pixel(name):
-    """The fused renderer sees what `mjx.ray` sees, ray by ray, over random poses (on the CPU up to ties of
-    equal distances; a GPU rounds some ray-grazing silhouette rays differently, docs/results.md)."""
+    """The fused renderer sees what `mjx.ray` sees, ray by ray, over random poses (on the CPU up to ties: two geoms
+    hit within the relative `camera.TIE`, where the camera keeps the one it merges first and `mjx.ray` the nearer;
+    a GPU rounds some ray-grazing silhouette rays differently, docs/results.md)."""
     env = envs_mjx.make(name)
     cam, model = env.camera, env.mjx_model
     hinges = env.mj_model.jnt_qposadr[env.mj_model.jnt_type == mujoco.mjtJoint.mjJNT_HINGE]
@@ -90,16 +91,28 @@ def test_render_equals_mjx_ray_cast_per_pixel(name):
         offset = jax.random.uniform(key, (len(hinges),), minval=-0.5, maxval=0.5)
         data = mjx.make_data(model).replace(qpos=jnp.asarray(home, jnp.float32).at[hinges].add(offset))
         data = mjx.kinematics(model, data)
-        ids = jax.vmap(lambda v: mjx.ray(model, data, jnp.asarray(cam.position), v, geomgroup=VISIBLE_GROUPS)[1])(
+        dist, ids = jax.vmap(lambda v: mjx.ray(model, data, jnp.asarray(cam.position), v, geomgroup=VISIBLE_GROUPS))(
             jnp.asarray(cam.directions)
         )
-        return cam.geom_map(model, data), ids.reshape(cam.rays_per_side, -1), cam.render(model, data)[..., 0]
+        n = cam.rays_per_side
+        return (cam.geom_map(model, data), ids.reshape(n, n), dist.reshape(n, n), cam.render(model, data)[..., 0],
+                data.geom_xpos, data.geom_xmat)
 
-    ids, reference, image = (np.asarray(x) for x in both(jax.random.split(jax.random.PRNGKey(0), 8)))
+    ids, reference, ref_dist, image, xpos, xmat = (
+        np.asarray(x) for x in both(jax.random.split(jax.random.PRNGKey(0), 8))
+    )
     assert len(np.unique(ids)) >= 4  # several geoms in view, not a blank frame
-    # the same first hit ray by ray, except where two geoms are hit at equal distances up to rounding (where
-    # link capsules overlap at a joint): at most 1 ray in 10,000
-    assert (ids != reference).mean() <= 1e-4, np.argwhere(ids != reference)
+    # the same first hit ray by ray, except at ties (link capsules that overlap at a joint or cross): there the
+    # camera's geom is hit within `TIE` of mjx.ray's nearer one (up to the rounding of a lone ray's cast)
+    ties = np.argwhere(ids != reference)
+    assert len(ties) <= 1e-3 * ids.size, len(ties)
+    for pose, row, col in ties:
+        g = ids[pose, row, col]
+        assert g >= 0 and reference[pose, row, col] >= 0, (g, reference[pose, row, col])
+        ray = cam.directions[row * cam.rays_per_side + col][None]
+        d = float(cast(ray, cam.position, int(env.mj_model.geom_type[g]), env.mj_model.geom_size[g], xpos[pose, g],
+                       xmat[pose, g])[0])
+        assert d <= ref_dist[pose, row, col] * (1 + TIE + 1e-5), (g, d, ref_dist[pose, row, col])
     # each pixel is the rounded mean gray level of its supersample² rays
     k = cam.supersample
     rays = cam.gray_levels[ids].reshape(8, cam.resolution, k, cam.resolution, k).astype(float)

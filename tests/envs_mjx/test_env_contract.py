@@ -10,7 +10,6 @@ import pytest
 
 import envs_mjx
 from bidal_jax import acting
-from envs_mjx.camera import cast
 
 # nicol_lift_reduced is nicol_lift with proprio segments dropped, and the ladder's nicol_slide_ee and
 # nicol_slide_ee_obj are nicol_slide with only some kept: test_nicol.py checks them against nicol_lift and
@@ -89,11 +88,11 @@ def test_no_nan_over_a_thousand_random_steps_and_deterministic(name):
 @pytest.mark.parametrize("name", ENV_NAMES)
 def test_culled_camera_frames_are_those_of_casting_every_ray(name):
     """The camera's culling (each moving geom cast against its window of rays, envs_mjx/camera.py) gives the geom
-    maps and frames of casting every geom against every ray over the random rollout's scenes, bit for bit except at
-    ties: a ray that hits two geoms at the same distance up to rounding (overlapping links at a joint), which XLA's
-    CPU code for a window and for the whole frame may round apart. The culling is in force: nearly every scene fits
-    its windows (the rest, cast in full, are compared too), and the frames the rollout rendered are culled ones.
-    Generic: the windows come from the model, whatever its camera pose."""
+    maps and frames of casting every geom against every ray over the random rollout's scenes, bit for bit, though
+    the two are compiled apart (one scene at a time against a batch): two geoms hit at the same distance up to
+    rounding (overlapping links at a joint) tie, and the one merged first keeps the ray in both. The culling is in
+    force: nearly every scene fits its windows (the rest, cast in full, are compared too), and the frames the
+    rollout rendered are culled ones. Generic: the windows come from the model, whatever its camera pose."""
     env, _, _ = compiled(name)
     cam = env.camera
     _, (*_, images, xpos, xmat) = rollout(name, 1)
@@ -111,17 +110,9 @@ def test_culled_camera_frames_are_those_of_casting_every_ray(name):
     full_ids, full_images, ids, fits = (np.asarray(x) for x in maps(xpos, xmat))
     assert fits.mean() >= 0.9, fits.mean()
     assert len(np.unique(full_ids)) >= 3  # the scene is seen, not a blank frame
-    ties = np.argwhere(ids != full_ids)
-    assert len(ties) <= 1e-4 * ids.size, len(ties)
-    for scene, row, col in ties:  # each a tie of two geoms, not a geom the culling missed
-        a, b = full_ids[scene, row, col], ids[scene, row, col]
-        assert a >= 0 and b >= 0, (a, b)
-        ray = cam.directions[row * cam.rays_per_side + col][None]
-        da, db = (float(cast(ray, cam.position, int(env.mj_model.geom_type[g]), env.mj_model.geom_size[g],
-                             xpos[scene, g], xmat[scene, g])[0]) for g in (a, b))
-        assert abs(da - db) <= 1e-5 * da, (a, b, da, db)
-    # the rollout's frames (culled, vmapped over its envs): the same up to the pixels of such ties
-    assert (np.asarray(images) != full_images).mean() <= 1e-4
+    np.testing.assert_array_equal(ids, full_ids)
+    # the rollout's frames: culled, vmapped over its envs inside the rollout's program
+    np.testing.assert_array_equal(np.asarray(images), full_images)
 
 
 @pytest.mark.parametrize("name", ENV_NAMES)
