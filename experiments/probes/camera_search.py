@@ -7,24 +7,26 @@ with a pinhole camera, the points of `--configs` configurations of the goal dist
 `mujoco.mj_kinematics` on the CPU model):
 
 - for every camera position of a grid around the robot (bearing from the side (-y, 0°) to the pan axis (+x, 90°),
-  horizontal distance from the base axis, height), the optical axis is centred on the projected elbow, wrist and
-  tool points (`centred_rotation`) and the field of view is the narrowest that holds them all with `MARGIN_PX` to
-  spare (`fitted_focal`);
-- score: the stub centre's projected shift per ε along each joint, its 10th percentile over the configurations,
-  and the minimum over the three joints (`projected_p10`).
+  horizontal distance from the base axis, height) and roll of the frame about its axis (`ROLLS_DEG`), the optical
+  axis is centred on the projected elbow, wrist and tool points (`centred_rotation`) and the field of view is the
+  narrowest that holds them all with `MARGIN_PX` to spare (`fitted_focal`);
+- score: the stub centre's projected shift per ε along each joint, its 10th percentile over the configurations
+  (`pose`), and the minimum over the three joints (`search` ranks by it).
 
-The bound (`bound`): a pinhole camera that frames a point set maps it into 2 · (21 - `MARGIN_PX`) px; the elbow turns
-the stub centre by ε · (forearm + stub / 2) = 0.048 m whatever the configuration, and the frame must hold the pan
-sweep of the full reach (a disk of about 1 m radius), so at the workspace's own distance a metre spans at most
-about 20 px and the elbow axis at most about 1 px per ε. Perspective helps the stub only where it is nearer the
-camera than the workspace's centre, which the lowest decile is not.
+The bound (`bound`): the frame must hold the pan sweep of the full reach (a disk of 0.975 m radius, whose diameter
+every view sees whole), so at the workspace's distance a metre spans at most 2 · (21 - `MARGIN_PX`) / 1.95 = 20.5 px
+(29.0 along the frame's diagonal); the elbow turns the stub's centre by ε · (forearm + stub / 2) = 0.048 m whatever
+the configuration, and the pan by ε times its distance from the pan axis, under 0.08 m in a tenth of the goal
+region. So in the lowest decile the elbow's image moves at most 0.99 px per ε (1.40 on the diagonal) and the pan's
+0.16 (0.23). Perspective helps the stub only where it is nearer the camera than the framed points that set the field
+of view.
 
-    python -m experiments.probes.camera_search [--configs 4096] [--seed 0] [--top 8] [--validate 3]
-        [--states 256] [--out results/camera/ur5_search.json]
+    python -m experiments.probes.camera_search [--configs 4096] [--seed 0] [--top 3] [--states 256] [--out FILE]
 
-Prints the bound, the best poses of the grid (projected p10 per joint) and, for the `--validate` best, the
-ray-cast probe's p10 at `--states` goal states (`experiments.probes.resolvability`), and writes them with the
-command, date and commit to `--out` (a file that exists is not overwritten).
+Prints the poses (today's camera, the `--top` best of the grid, the best for each joint) with their projected p10
+and the ray-cast probe's p10 at `--states` goal states (`experiments.probes.resolvability`, the camera put at the
+pose in the CPU model), and the bound; `--out` writes them with the command, date and commit to a new JSON file
+(one that exists is refused, not overwritten).
 """
 
 from __future__ import annotations
@@ -171,9 +173,11 @@ def best_per_joint(rows: list[dict]) -> list[dict]:
 
 def bound(framed: np.ndarray, centre: np.ndarray) -> dict:
     """The orthographic bound: the frame holds the pan sweep of the full reach, a disk whose diameter every view
-    sees whole, so a metre at the workspace's distance spans at most 2 · (21 - `MARGIN_PX`) px / (2 · reach); each
-    joint's ε moves the object's centre the 10th percentile of its displacement in 3-D (pan: ε times the centre's
-    distance from the pan axis; elbow: ε · 0.48 m always), which sets the most its image can move there."""
+    sees whole, so a metre at the workspace's distance spans at most 2 · (21 - `MARGIN_PX`) px / (2 · reach), or √2
+    times that with the diameter along the frame's diagonal (a roll of 45°); each joint's ε moves the object's
+    centre the 10th percentile of its displacement in 3-D (pan: ε times the centre's distance from the pan axis;
+    elbow: ε · 0.48 m always), which caps its image's shift there. Perspective beats it only for an object nearer
+    the camera than the framed points that set the field of view."""
     reach = float(np.hypot(framed[..., 0], framed[..., 1]).max())
     px_per_m = 2 * (HALF - MARGIN_PX) / (2 * reach)
     moved_p10 = np.percentile(np.linalg.norm(centre[:, 1:] - centre[:, :1], axis=-1), 10, axis=0)
@@ -182,6 +186,7 @@ def bound(framed: np.ndarray, centre: np.ndarray) -> dict:
             "object_axis_distance_p10_m": round(float(np.percentile(radius, 10)), 3),
             "moved_p10_m": [round(float(v), 4) for v in moved_p10],
             "px_p10": [round(float(v), 3) for v in px_per_m * moved_p10],
+            "px_p10_diagonal": [round(float(v), 3) for v in np.sqrt(2) * px_per_m * moved_p10],
             "px_per_m_needed": [round(float(v), 1) for v in resolvability.CONTRACT_PX / moved_p10]}
 
 
@@ -250,21 +255,26 @@ def record(args: argparse.Namespace, command: str, found: dict) -> dict:
 
 
 def note(found: dict) -> str:
-    """What the numbers say, in a sentence or three."""
+    """What the numbers say, in a few sentences."""
     b, axes = found["bound"], found["axes"]
-    best = found["best"][0]
-    measured = best.get("ray_cast_p10", best["projected_p10"])
+    measured = [r.get("ray_cast_p10", r["projected_p10"]) for r in found["best"]]
+    best = max(measured, key=min)
     per_joint = ", ".join(f"{a} {r.get('ray_cast_p10', r['projected_p10'])[j]:.2f}"
                           for j, (a, r) in enumerate(zip(axes, found["best_per_joint"])))
-    return (f"The frame must hold the pan sweep of the full reach ({b['reach_m']:g} m), so at the workspace's distance "
-            f"a metre spans at most {b['px_per_m']:g} px; in the lowest decile ε moves the stub's centre "
+    meets = min(best) >= resolvability.CONTRACT_PX
+    return (f"The frame must hold the pan sweep of the full reach ({b['reach_m']:g} m from the base axis), so at the "
+            f"workspace's distance a metre spans at most {b['px_per_m']:g} px ({b['px_per_m'] * np.sqrt(2):.1f} along "
+            "the frame's diagonal); in the lowest decile ε moves the stub's centre "
             + " / ".join(f"{v * 1000:.0f}" for v in b["moved_p10_m"]) + " mm (" + " / ".join(axes)
             + f"; the stub lies within {b['object_axis_distance_p10_m']:g} m of the pan axis in a tenth of the "
-            f"configurations), which bounds its image at " + " / ".join(f"{v:.2f}" for v in b["px_p10"])
-            + f" px; {resolvability.CONTRACT_PX:g} px would take " + " / ".join(f"{v:g}" for v in b["px_per_m_needed"])
+            "configurations), which caps its image at " + " / ".join(f"{v:.2f}" for v in b["px_p10"]) + " px ("
+            + " / ".join(f"{v:.2f}" for v in b["px_p10_diagonal"]) + f" on the diagonal); "
+            f"{resolvability.CONTRACT_PX:g} px would take " + " / ".join(f"{v:g}" for v in b["px_per_m_needed"])
             + " px per metre at the stub. Perspective adds what a nearer stub gains: the best pose of the grid reaches "
-            + " / ".join(f"{v:.2f}" for v in measured) + " px (ray cast), the best per joint " + per_joint
-            + " px, each at its own pose. No fixed camera meets the contract.")
+            + " / ".join(f"{v:.2f}" for v in best) + " px (ray cast), the best per joint " + per_joint
+            + " px, each at its own pose (the grid includes poses level with the workspace, which the contract's "
+            "camera above the robot excludes). "
+            + ("A pose of the grid meets the contract." if meets else "No pose of the grid meets the contract."))
 
 
 def build_parser() -> argparse.ArgumentParser:
