@@ -17,16 +17,16 @@ The bound (`bound`): the frame must hold the pan sweep of the full reach (a disk
 every view sees whole), so at the workspace's distance a metre spans at most 2 · (21 - `MARGIN_PX`) / 1.95 = 20.5 px
 (29.0 along the frame's diagonal); the elbow turns the stub's centre by ε · (forearm + stub / 2) = 0.048 m whatever
 the configuration, and the pan by ε times its distance from the pan axis, under 0.08 m in a tenth of the goal
-region. So in the lowest decile the elbow's image moves at most 0.99 px per ε (1.40 on the diagonal) and the pan's
+region. So in the lowest decile the elbow's image moves at most 0.99 px per ε (1.39 on the diagonal) and the pan's
 0.16 (0.23). Perspective helps the stub only where it is nearer the camera than the framed points that set the field
 of view.
 
     python -m experiments.probes.camera_search [--configs 4096] [--seed 0] [--top 3] [--states 256] [--out FILE]
 
 Prints the poses (today's camera, the `--top` best of the grid, the best for each joint) with their projected p10
-and the ray-cast probe's p10 at `--states` goal states (`experiments.probes.resolvability`, the camera put at the
-pose in the CPU model), and the bound; `--out` writes them with the command, date and commit to a new JSON file
-(one that exists is refused, not overwritten).
+and the ray-cast p10 at `--states` goal states (`image_shift.shifts`, the resolvability probe's measure, with the
+camera put at the pose in the CPU model), and the bound; `--out` writes them with the command, date and commit to a
+new JSON file (one that exists is refused, not overwritten).
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ from bidal_jax.config import ConfigError
 from envs_mjx.base import IMAGE_SHAPE, Env
 from envs_mjx.ur5_reach import POINT_NAMES
 from experiments import cli, report
-from experiments.probes import resolvability
+from experiments.probes import image_shift
 
 PROG = "python -m experiments.probes.camera_search"
 ENV = "ur5_reach"
@@ -61,17 +61,17 @@ MAX_OFF_AXIS_DEG = 80.0  # a pose that needs a wider half field of view is left 
 
 
 def configurations(env: Env, n: int, seed: int) -> np.ndarray:
-    """`n` configurations [n, nq] of the goal distribution (`resolvability.sample`)."""
-    return np.asarray(resolvability.sample(env, n, seed), np.float64)
+    """`n` configurations [n, nq] of the goal distribution (`image_shift.sample`)."""
+    return np.asarray(image_shift.sample(env, n, seed), np.float64)
 
 
 def points(env: Env, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(the framed points: elbow, wrist and tool sites [N, 3, 3]; the object's centre at `qpos` and turned by ε about
     each joint [N, 1 + joints, 3]), from `mujoco.mj_kinematics` on the CPU model."""
     model, data = env.mj_model, mujoco.MjData(env.mj_model)
-    tgt = resolvability.target(env)
+    tgt = image_shift.target(env)
     sites = [model.site(name).id for name in POINT_NAMES]
-    turned = jax.vmap(lambda q, i: resolvability.moved(env, q, i, tgt.epsilon), in_axes=(0, None))
+    turned = jax.vmap(lambda q, i: image_shift.moved(env, q, i, tgt.epsilon), in_axes=(0, None))
     variants = [qpos] + [np.asarray(turned(qpos, i), np.float64) for i in range(len(tgt.axes))]
     framed = np.empty((len(qpos), len(sites), 3))
     centre = np.empty((len(qpos), len(variants), 3))
@@ -187,7 +187,7 @@ def bound(framed: np.ndarray, centre: np.ndarray) -> dict:
             "moved_p10_m": [round(float(v), 4) for v in moved_p10],
             "px_p10": [round(float(v), 3) for v in px_per_m * moved_p10],
             "px_p10_diagonal": [round(float(v), 3) for v in np.sqrt(2) * px_per_m * moved_p10],
-            "px_per_m_needed": [round(float(v), 1) for v in resolvability.CONTRACT_PX / moved_p10]}
+            "px_per_m_needed": [round(float(v), 1) for v in image_shift.CONTRACT_PX / moved_p10]}
 
 
 def set_camera(env: Env, row: dict) -> None:
@@ -203,8 +203,8 @@ def set_camera(env: Env, row: dict) -> None:
 
 def ray_cast_p10(env: Env, states: int, seed: int) -> list[float]:
     """The resolvability probe's p10 per joint (px per ε, ray cast) with `env`'s camera as it stands."""
-    px, _ = resolvability.shifts(env, resolvability.sample(env, states, seed))
-    return [round(float(v), 3) for v in resolvability.summary(px, np.zeros_like(px, bool))["p10"]]
+    px, _ = image_shift.shifts(env, image_shift.sample(env, states, seed))
+    return [round(float(v), 3) for v in image_shift.summary(px, np.zeros_like(px, bool))["p10"]]
 
 
 def current_pose(env: Env, centre: np.ndarray) -> dict:
@@ -261,7 +261,7 @@ def note(found: dict) -> str:
     best = max(measured, key=min)
     per_joint = ", ".join(f"{a} {r.get('ray_cast_p10', r['projected_p10'])[j]:.2f}"
                           for j, (a, r) in enumerate(zip(axes, found["best_per_joint"])))
-    meets = min(best) >= resolvability.CONTRACT_PX
+    meets = min(best) >= image_shift.CONTRACT_PX
     return (f"The frame must hold the pan sweep of the full reach ({b['reach_m']:g} m from the base axis), so at the "
             f"workspace's distance a metre spans at most {b['px_per_m']:g} px ({b['px_per_m'] * np.sqrt(2):.1f} along "
             "the frame's diagonal); in the lowest decile ε moves the stub's centre "
@@ -269,7 +269,7 @@ def note(found: dict) -> str:
             + f"; the stub lies within {b['object_axis_distance_p10_m']:g} m of the pan axis in a tenth of the "
             "configurations), which caps its image at " + " / ".join(f"{v:.2f}" for v in b["px_p10"]) + " px ("
             + " / ".join(f"{v:.2f}" for v in b["px_p10_diagonal"]) + f" on the diagonal); "
-            f"{resolvability.CONTRACT_PX:g} px would take " + " / ".join(f"{v:g}" for v in b["px_per_m_needed"])
+            f"{image_shift.CONTRACT_PX:g} px would take " + " / ".join(f"{v:g}" for v in b["px_per_m_needed"])
             + " px per metre at the stub. Perspective adds what a nearer stub gains: the best pose of the grid reaches "
             + " / ".join(f"{v:.2f}" for v in best) + " px (ray cast), the best per joint " + per_joint
             + " px, each at its own pose (the grid includes poses level with the workspace, which the contract's "
@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     env = envs_mjx.make(ENV, render=False)
     framed, centre = points(env, configurations(env, args.configs, args.seed))
     rows = search(framed, centre)
-    found = {"axes": list(resolvability.target(env).axes), "grid": len(rows), "bound": bound(framed, centre),
+    found = {"axes": list(image_shift.target(env).axes), "grid": len(rows), "bound": bound(framed, centre),
              "current": current_pose(env, centre), "best": rows[:args.top], "best_per_joint": best_per_joint(rows)}
     found["current"]["ray_cast_p10"] = ray_cast_p10(env, args.states, args.seed)
     for row in found["best"] + found["best_per_joint"]:
