@@ -21,12 +21,14 @@ region. So in the lowest decile the elbow's image moves at most 0.99 px per ε (
 0.16 (0.23). Perspective helps the stub only where it is nearer the camera than the framed points that set the field
 of view.
 
-    python -m experiments.probes.camera_search [--configs 4096] [--seed 0] [--top 3] [--states 256] [--out FILE]
+    python -m experiments.probes.camera_search [--configs 4096] [--seed 0] [--top 3] [--states 256] [--epsilon RAD]
+        [--out FILE]
 
 Prints the poses (today's camera, the `--top` best of the grid, the best for each joint) with their projected p10
 and the ray-cast p10 at `--states` goal states (`image_shift.shifts`, the resolvability probe's measure, with the
 camera put at the pose in the CPU model), and the bound; `--out` writes them with the command, date and commit to a
-new JSON file (one that exists is refused, not overwritten).
+new JSON file (one that exists is refused, not overwritten). `--epsilon` turns each joint by another angle than the
+task's ε: what a larger ε would show.
 """
 
 from __future__ import annotations
@@ -235,8 +237,9 @@ def record(args: argparse.Namespace, command: str, found: dict) -> dict:
         "part": "Learning (paper Fig. 4)",
         "title": "ur5_reach's camera: can any fixed pose resolve the goal?",
         "about": f"Pinhole projection of {args.configs} configurations of ur5_reach's goal distribution (seed "
-                 f"{args.seed}; points from mujoco.mj_kinematics): the wrist stub's centre turned by ε = 0.1 rad about "
-                 "each joint, and every elbow, wrist and tool point, which the frame must hold 1 px inside its edge. "
+                 f"{args.seed}; points from mujoco.mj_kinematics): the wrist stub's centre turned by "
+                 f"ε = {found['epsilon']:g} rad about each joint, and every elbow, wrist and tool point, which the "
+                 "frame must hold 1 px inside its edge. "
                  f"{found['grid']} poses: bearing {BEARINGS_DEG[0]:g}–{BEARINGS_DEG[-1]:g}° from the side (-y) toward "
                  f"the pan axis (+x), {DISTANCES[0]:g}–{DISTANCES[-1]:g} m from the base axis, {HEIGHTS[0]:g}–"
                  f"{HEIGHTS[-1]:g} m up, roll {', '.join(f'{r:g}' for r in ROLLS_DEG)}°; each centred on the "
@@ -283,6 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--top", type=int, default=3, help="best poses of the grid to keep and measure")
     parser.add_argument("--states", type=int, default=256, help="goal states of the ray-cast probe per pose")
+    parser.add_argument("--epsilon", type=float, default=None,
+                        help="rad each joint turns (default: the task's ε, 0.1), to ask what a larger ε would show")
     parser.add_argument("--out", default=None, help="a new JSON file for the record (default: none written)")
     return parser
 
@@ -293,13 +298,18 @@ def main(argv: list[str] | None = None) -> int:
     for flag, value, least in (("--configs", args.configs, 10), ("--top", args.top, 1), ("--states", args.states, 1)):
         if value < least:
             return cli.exit_code(ConfigError(f"{flag} {value}: must be at least {least}"))
+    if args.epsilon is not None and not 0 < args.epsilon <= np.pi:
+        return cli.exit_code(ConfigError(f"--epsilon {args.epsilon}: must be in (0, π] rad"))
     if args.out is not None and pathlib.Path(args.out).exists():
         return cli.exit_code(ConfigError(f"--out {args.out}: exists; give a new file"))
     env = envs_mjx.make(ENV, render=False)
+    if args.epsilon is not None:
+        env.epsilon = args.epsilon  # what the probe's target turns each joint by
     framed, centre = points(env, configurations(env, args.configs, args.seed))
     rows = search(framed, centre)
-    found = {"axes": list(image_shift.target(env).axes), "grid": len(rows), "bound": bound(framed, centre),
-             "current": current_pose(env, centre), "best": rows[:args.top], "best_per_joint": best_per_joint(rows)}
+    found = {"axes": list(image_shift.target(env).axes), "epsilon": env.epsilon, "grid": len(rows),
+             "bound": bound(framed, centre), "current": current_pose(env, centre), "best": rows[:args.top],
+             "best_per_joint": best_per_joint(rows)}
     found["current"]["ray_cast_p10"] = ray_cast_p10(env, args.states, args.seed)
     for row in found["best"] + found["best_per_joint"]:
         if "ray_cast_p10" in row:

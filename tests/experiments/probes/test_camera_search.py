@@ -65,6 +65,8 @@ def test_set_camera_puts_the_pose_in_the_model(scene):
 def test_bad_counts_and_an_existing_out_are_refused(tmp_path, capsys):
     assert cs.main(["--configs", "3"]) == 2
     assert "error: --configs 3" in capsys.readouterr().err
+    assert cs.main(["--epsilon", "0"]) == 2
+    assert "error: --epsilon 0" in capsys.readouterr().err
     out = tmp_path / "search.json"
     out.write_text("{}")
     assert cs.main(["--out", str(out)]) == 2
