@@ -1,7 +1,7 @@
 """The vision branch alone against its floor: forward and backward passes of an update's frames, per conv_impl.
 
-    python -m experiments.bench.encoder                                  # patch, banded, toeplitz; bfloat16
-    python -m experiments.bench.encoder --impls toeplitz --seeds 5 --frames 4096 --dtype bfloat16
+    python -m experiments.bench.encoder                      # patch, banded, toeplitz (and pallas on a GPU); bfloat16
+    python -m experiments.bench.encoder --impls toeplitz pallas --seeds 5 --frames 4096 --dtype bfloat16
 
 Times, for `--seeds` vmapped seeds, the vision branch (`bidal_jax.networks.VisionBranch`: the four 3×3 convs with
 ELU and the dense layer) of `--frames` frames per seed, forward and backward (the gradients of its weights and
@@ -22,7 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from bidal_jax.config import CONV_IMPLS, NetworkConfig
-from bidal_jax.networks import VisionBranch, _same_pads, parse_strides
+from bidal_jax.conv_matrices import same_pads
+from bidal_jax.networks import FUSED_IMPL, VisionBranch, parse_strides
 from experiments.bench.programs import timed
 
 PEAK_FLOPS, PEAK_BYTES = 989e12, 3.35e12  # one H100 SXM: bf16 dense tensor-core FLOP/s, HBM3 bytes/s
@@ -34,7 +35,7 @@ def branch_flops(strides: tuple[int, ...], channels: int, features: int, k: int 
     backward = weight gradients of every layer + input gradients of all but the first."""
     size, c_in, forward = FRAME[0], FRAME[2], []
     for layer, stride in enumerate(strides):
-        pads = (0, 0, 0, 0) if layer == 0 else _same_pads(size, size, k, stride)
+        pads = (0, 0, 0, 0) if layer == 0 else same_pads(size, size, k, stride)
         size = (size + pads[0] + pads[1] - k) // stride + 1
         forward.append(2.0 * k * k * c_in * channels * size * size)
         c_in = channels
@@ -71,7 +72,8 @@ def encoder_step(impl: str, dtype: str, seeds: int, frames: int):
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--impls", nargs="+", default=list(CONV_IMPLS), choices=CONV_IMPLS)
+    parser.add_argument("--impls", nargs="+", choices=CONV_IMPLS,
+                        default=[impl for impl in CONV_IMPLS if impl != FUSED_IMPL or jax.default_backend() == "gpu"])
     parser.add_argument("--dtype", default="bfloat16", choices=("float32", "bfloat16"))
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--frames", type=int, default=4096,
