@@ -173,24 +173,26 @@ class VisionBranch(nn.Module):
     channels: int
     features: int
     strides: tuple[int, ...] = (3, 2, 2, 1)
-    impl: str = "patch"  # how the convs are computed (PatchConv.impl), or FUSED_IMPL: all four in one kernel
+    impl: str = "patch"  # how the convs are computed (PatchConv.impl), or FUSED_IMPL (a fused kernel)
     dtype: Any = jnp.float32  # what the layers compute in (parameters stay float32); the features come out float32
 
     @nn.compact
     def __call__(self, image: jax.Array) -> jax.Array:
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
-        first, *rest = self.strides
-        if self.impl == FUSED_IMPL:
+        if self.impl == FUSED_IMPL:  # the first layers in one kernel, the others as toeplitz
+            count = encoder_kernel.FUSED_LAYERS
+            fused, rest, impl = self.strides[:count], self.strides[count:], "toeplitz"
             encoder_kernel.check_supported(self.strides, image.shape[1:], self.channels)
-            inputs = [image.shape[-1]] + [self.channels] * len(rest)
-            convs = [PatchConv(self.channels, stride=stride).weights(c) for stride, c in zip(self.strides, inputs)]
-            x = encoder_kernel.fused_convs(image, convs, self.strides, self.dtype)
+            inputs = [image.shape[-1]] + [self.channels] * (len(fused) - 1)
+            convs = [PatchConv(self.channels, stride=stride).weights(c) for stride, c in zip(fused, inputs)]
+            x = encoder_kernel.fused_convs(image, convs, fused, self.dtype)
         else:
+            (first, *rest), impl = self.strides, self.impl
             x = image.astype(self.dtype) / 255.0
-            x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", impl=self.impl)(x))
-            for stride in rest:
-                x = nn.elu(PatchConv(self.channels, stride=stride, impl=self.impl)(x))
-            x = x.reshape(x.shape[0], -1)
+            x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", impl=impl)(x))
+        for stride in rest:
+            x = nn.elu(PatchConv(self.channels, stride=stride, impl=impl)(x))
+        x = x.reshape(x.shape[0], -1)
         return nn.elu(nn.Dense(self.features, dtype=self.dtype)(x)).astype(jnp.float32)
 
 
