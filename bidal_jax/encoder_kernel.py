@@ -206,21 +206,22 @@ def _backward_kernel(taps2_ref, outs3_ref, order_ref, s_ref, h3_ref, g_ref, w1_r
             dw3[t] = dw3[t] + _t_dot(h2, dz3)
             dh2 = dh2 + _dot_t(dz3, _tap(w3_ref, t, dtype))
         dz2 = dh2 * _elu_grad(z2)
-        db2 = db2 + jnp.sum(dz2, axis=0, keepdims=True)
+        db2 = db2 + dz2  # summed over the frames once, at the end
         dz2 = dz2.astype(dtype)
         for t, (patches, z1, inside) in enumerate(taps):
             dw2[t] = dw2[t] + _t_dot((_elu(z1) * inside).astype(dtype), dz2)
             dz1 = _dot_t(dz2, _tap(w2_ref, t, dtype)) * _elu_grad(z1) * inside
             dw1 = dw1 + _t_dot(patches, dz1.astype(dtype))
-            db1 = db1 + jnp.sum(dz1, axis=0, keepdims=True)
+            db1 = db1 + dz1
         return dw1, db1, db2, tuple(dw2), tuple(dw3)
 
-    square, row = jnp.zeros((features, features), jnp.float32), jnp.zeros((1, features), jnp.float32)
-    grads = (jnp.zeros((PIXELS, features), jnp.float32), row, row, (square,) * TAPS, (square,) * TAPS)
+    square, frames = jnp.zeros((features, features), jnp.float32), jnp.zeros(g_ref.shape[:1] + (features,), jnp.float32)
+    grads = (jnp.zeros((PIXELS, features), jnp.float32), frames, frames, (square,) * TAPS, (square,) * TAPS)
     for reading, first, count in groups:
         grads = jax.lax.fori_loop(0, count, functools.partial(position, first=first, reading=reading), grads)
     dw1, db1, db2, dw2, dw3 = grads
-    dw1_ref[...], db1_ref[...], db2_ref[...] = dw1, db1, db2
+    dw1_ref[...] = dw1
+    db1_ref[...], db2_ref[...] = jnp.sum(db1, axis=0, keepdims=True), jnp.sum(db2, axis=0, keepdims=True)
     for t in range(TAPS):
         dw2_ref[t * features: (t + 1) * features, :] = dw2[t]
         dw3_ref[t * features: (t + 1) * features, :] = dw3[t]
