@@ -159,18 +159,21 @@ def _tap(ref, t: int, dtype) -> jax.Array:
     return ref[t * features: (t + 1) * features, :].astype(dtype)
 
 
-def _layers_1_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1: int, dtype) -> tuple[list, jax.Array]:
-    """Layer 2's pre-activation [B, F] at output position `pos`, and for each of its taps (patches, layer-1
-    pre-activation, 1 if the tap is inside the frame else 0)."""
-    taps, z2 = [], 0.0
+def _layer_1(s_ref, taps2_ref, w1, b1, pos, t: int, n1: int, dtype) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Layer 1 at the patch that tap t of layer-2 position `pos` reads: (its pixels [B, 16] in `dtype`, its
+    pre-activation [B, F], 1 if the tap is inside the frame else 0)."""
+    index = taps2_ref[pos * TAPS + t]
+    patches = (s_ref[:, index, :].astype(jnp.float32) * (1.0 / 255.0)).astype(dtype)
+    return patches, _dot(patches, w1) + b1, (index < n1).astype(jnp.float32)
+
+
+def _layer_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1: int, dtype) -> jax.Array:
+    """Layer 2's pre-activation [B, F] at output position `pos`."""
+    z2 = 0.0
     for t in range(TAPS):
-        index = taps2_ref[pos * TAPS + t]
-        patches = (s_ref[:, index, :].astype(jnp.float32) * (1.0 / 255.0)).astype(dtype)
-        z1 = _dot(patches, w1) + b1
-        inside = (index < n1).astype(jnp.float32)
+        _, z1, inside = _layer_1(s_ref, taps2_ref, w1, b1, pos, t, n1, dtype)
         z2 = z2 + _dot((_elu(z1) * inside).astype(dtype), _tap(w2_ref, t, dtype))
-        taps.append((patches, z1, inside))
-    return taps, z2 + b2
+    return z2 + b2
 
 
 def _forward_kernel(taps2_ref, s_ref, w1_ref, b1_ref, w2_ref, b2_ref, m3_ref, b3_ref, h3_ref, *, n1: int, n2: int,
@@ -179,7 +182,7 @@ def _forward_kernel(taps2_ref, s_ref, w1_ref, b1_ref, w2_ref, b2_ref, m3_ref, b3
     w1, b1, b2 = w1_ref[...].astype(dtype), b1_ref[...], b2_ref[...]
 
     def position(pos, z3):
-        _, z2 = _layers_1_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1, dtype)
+        z2 = _layer_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1, dtype)
         return z3 + _dot(_elu(z2).astype(dtype), m3_ref[pl.ds(pos * features, features), :])
 
     z3 = jax.lax.fori_loop(0, n2, position, jnp.zeros(h3_ref.shape, jnp.float32))
@@ -197,7 +200,7 @@ def _backward_kernel(taps2_ref, outs3_ref, order_ref, s_ref, h3_ref, g_ref, w1_r
         dw1, db1, db2, dw2, dw3 = grads
         dw2, dw3 = list(dw2), list(dw3)
         pos = order_ref[first + i]
-        taps, z2 = _layers_1_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1, dtype)
+        z2 = _layer_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1, dtype)
         h2, dh2 = _elu(z2).astype(dtype), 0.0
         for t in reading:  # the layer-3 outputs that read this position, each through its tap t
             cols = pl.ds(outs3_ref[pos * TAPS + t] * features, features)
@@ -208,7 +211,8 @@ def _backward_kernel(taps2_ref, outs3_ref, order_ref, s_ref, h3_ref, g_ref, w1_r
         dz2 = dh2 * _elu_grad(z2)
         db2 = db2 + dz2  # summed over the frames once, at the end
         dz2 = dz2.astype(dtype)
-        for t, (patches, z1, inside) in enumerate(taps):
+        for t in range(TAPS):  # layer 1 recomputed: fewer values live than if kept from layer 2's pass
+            patches, z1, inside = _layer_1(s_ref, taps2_ref, w1, b1, pos, t, n1, dtype)
             dw2[t] = dw2[t] + _t_dot((_elu(z1) * inside).astype(dtype), dz2)
             dz1 = _dot_t(dz2, _tap(w2_ref, t, dtype)) * _elu_grad(z1) * inside
             dw1 = dw1 + _t_dot(patches, dz1.astype(dtype))
