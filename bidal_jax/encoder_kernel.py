@@ -114,7 +114,7 @@ def _geometry(strides: tuple[int, ...], image_shape: tuple[int, ...]) -> dict:
     outs3 = np.where(inside, rows * side3[1] + cols, -1).reshape(n2, TAPS)
     reading = [tuple(np.flatnonzero(row >= 0)) for row in outs3]
     groups, order = [], []
-    for taps in sorted(set(reading)):
+    for taps in sorted(set(reading) - {()}):  # a position no layer-3 output reads has no gradient
         members = [pos for pos, read in enumerate(reading) if read == taps]
         groups.append((taps, len(order), len(members)))
         order += members
