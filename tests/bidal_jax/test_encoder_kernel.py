@@ -29,14 +29,15 @@ def seeds_case(seeds: int, frames: int, strides: tuple[int, ...] = STRIDES) -> t
 
 
 def features_and_grads(impl: str, dtype: str, params: dict, images: jax.Array, strides: tuple[int, ...] = STRIDES):
-    """The branch's features of each seed's frames and the gradients of a loss of them in each seed's parameters."""
+    """The branch's features of each seed's frames and the gradients of a loss of them in each seed's parameters;
+    float32 products in full float32 (a GPU's default is TF32, in XLA and in the kernel alike)."""
     net = branch(impl, dtype, strides)
 
     def loss(p, x):
         return (net.apply(p, x) ** 2).sum()
 
-    run = jax.jit(jax.vmap(lambda p, x: (net.apply(p, x), jax.grad(loss)(p, x))))
-    return run(params, images)
+    with jax.default_matmul_precision("highest"):
+        return jax.jit(jax.vmap(lambda p, x: (net.apply(p, x), jax.grad(loss)(p, x))))(params, images)
 
 
 def assert_close(ours, theirs, rtol: float):
