@@ -93,17 +93,18 @@ class NetworkConfig:
         "how the vision branch's convs are computed, the same function and parameters either way (so runs of "
         "either compare and resume alike): 'patch' (strided slices and one matmul: the fast form on a CPU) or "
         "'banded' (input rows times band matrices of the kernel: the fast form on a GPU, the NICOL presets'; "
-        "docs/results.md, 'Image updates') or 'toeplitz' (banded, but a small layer, the last two of the default "
+        "docs/performance.md, 'Image updates') or 'toeplitz' (banded, but a small layer, the last two of the default "
         "strides, as one matmul of the whole frame by the conv's full matrix: no windows gathered) or 'pallas' (the "
-        "four convs and ELUs in one fused kernel, activations kept on chip: bidal_jax/encoder_kernel.py; a GPU "
-        "compiles it, a CPU interprets it slowly; first stride 3, 16 or more channels (a power of two))",
+        "first three convs and ELUs in one fused kernel, activations kept on chip, the fourth as toeplitz: "
+        "bidal_jax/encoder_kernel.py; a GPU compiles it, a CPU interprets it slowly; a first stride of 3 and 16 or "
+        "more channels, a power of two)",
         one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(
         "float32",
         "the dtype the vision branch computes in: float32, or bfloat16 (mixed precision: its convs and dense "
         "layer in bfloat16, parameters, gradients, optimiser state and every other network in float32; about "
-        "half the memory traffic of the image updates; docs/results.md, 'Image updates')",
+        "half the memory traffic of the image updates; docs/performance.md, 'Image updates')",
         one_of(VISION_DTYPES),
     )
     vision_features: int = doc(64, "width of the dense layer that ends the vision branch", POSITIVE_INT)

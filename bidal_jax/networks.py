@@ -133,7 +133,7 @@ class PatchConv(nn.Module):
     (`NetworkConfig.conv_impl`, a key of `CONVS`) picks how it is computed: "patch" (`_patch_conv`: strided slices
     and one matmul, the fast form on a CPU, where XLA's convolution op is slow inside the training loop's
     `lax.scan`), "banded" (`_banded_conv`: whole input rows times band matrices of the kernel, the fast form on a
-    GPU; the GPU presets'; docs/results.md, "Image updates") or "toeplitz" (`_toeplitz_conv`: a small layer as one
+    GPU; the GPU presets'; docs/performance.md, "Image updates") or "toeplitz" (`_toeplitz_conv`: a small layer as one
     matmul of the whole frame by the conv's full matrix, the others banded). It computes in the dtype of `x`
     (float32 parameters cast to it): with bfloat16 input its matmuls and output are bfloat16
     (`NetworkConfig.vision_dtype`).

@@ -305,7 +305,7 @@ class Env(abc.ABC):
     def compile_physics(self) -> None:
         """Compile what the physics engine builds at its first launch rather than with the program around it: MuJoCo
         Warp builds its kernels' modules when a step first runs them (minutes for a NICOL model into an empty Warp
-        kernel cache; docs/results.md, "MJX-JAX against MuJoCo Warp"), so one world is forwarded and stepped here;
+        kernel cache; docs/performance.md, "MJX-JAX against MuJoCo Warp"), so one world is forwarded and stepped here;
         MJX-JAX needs nothing, XLA compiles it with the epoch. `bidal_jax.run.loop` calls it beside the epoch's
         compile."""
         if self.backend == "warp":

@@ -7,7 +7,7 @@ it hits (the luminance of the geom's colour) or the background, and each output 
 its rays (area averaging), so a body smaller than a pixel still shades it. The image is rendered
 inside jit on CPU and GPU alike and is what `mujoco.mjx.ray` cast per pixel sees (the same
 intersection functions and geoms; tests/envs_mjx/test_camera.py compares them), organised for speed
-(the camera bounds the image agents: docs/results.md):
+(the camera bounds the image agents: docs/performance.md):
 
 - rays are precomputed once at construction in the world frame, so the camera must be
   fixed: its body and every ancestor have no joints and are not mocap bodies;

@@ -395,10 +395,10 @@ def gpu_preset(epochs: int, num_envs: int, cycles_per_epoch: int, updates_per_cy
     batches and many gradient updates cost little beside the physics there. The vision branch's convs as matmuls in
     bfloat16, banded with the last two layers as whole-frame Toeplitz matmuls (`NetworkConfig.conv_impl` toeplitz,
     `vision_dtype`), the fastest image update on a GPU, with which nicol_slide and planar_reach learn as in float32
-    (docs/results.md, "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and
-    warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than MJX-JAX's there (docs/results.md,
+    (docs/performance.md, "Image updates"); the physics on MuJoCo Warp where a run's devices are NVIDIA GPUs and
+    warp-lang imports (`RunConfig.physics` auto), whose epochs are shorter than MJX-JAX's there (docs/performance.md,
     "MJX-JAX against MuJoCo Warp"); a checkpoint every 10 epochs instead of 5, since one holds the replay buffer
-    (GBs of frames) and its save costs the time of epochs (docs/results.md, "What a checkpoint costs")."""
+    (GBs of frames) and its save costs the time of epochs (docs/performance.md, "What a checkpoint costs")."""
     sizes = {"num_envs": num_envs, "cycles_per_epoch": cycles_per_epoch, "updates_per_cycle": updates_per_cycle,
              "batch_size": 2048, "buffer_episodes": 16384 // num_envs * num_envs, "eval_envs": 128}
     return {"run": {"epochs": epochs, "physics": "auto", "checkpoint_every": 10}, "train": {**sizes, **train},
@@ -411,7 +411,7 @@ class NicolSlide(NicolEnv):
     name = "nicol_slide"
     # one cycle of 2,560 envs and 1,600 updates per epoch (128,000 env steps, one update per 80), since one wide
     # cycle costs fewer sequential physics steps than 512 envs × 5 cycles (the same env steps and updates): 50 in a
-    # row an epoch instead of 250; 5 seeds of multimodal_bidal reach 0.9 in 9 epochs (docs/results.md, "Cold to 0.9
+    # row an epoch instead of 250; 5 seeds of multimodal_bidal reach 0.9 in 9 epochs (docs/performance.md, "Cold to 0.9
     # on nicol_slide"). The learning curves' budget: the multimodal agents at ≥ 0.9 from epoch 10-13 in pilot runs,
     # the visual agents at the do-nothing level through 25 epochs, plus about 15 (docs/deviations.md,
     # "Learning-curve budgets")
@@ -438,7 +438,7 @@ class NicolLift(NicolEnv):
     # 6,400 updates per epoch (one per 32 env steps), since with 1,600 proprio_baseline (5 seeds) reached what sliding
     # alone can score (0.125) only by epoch 53 instead of 21; twice as many again gain nothing and cost time
     # (docs/results.md, "Lifting"); nor do a quarter as many of batch 8,192, the same samples: their epochs are
-    # shorter, but they learn less per epoch (docs/results.md, "Learning parity of the speed levers"). Every agent
+    # shorter, but they learn less per epoch (docs/performance.md, "Learning parity of the speed levers"). Every agent
     # trains under HER's pick-and-place protocol: half of the training episodes start with the cube held
     # (`HELD_STARTS`). The learning curves' budget: multimodal_bidal (λ 0.1) at ≥ 0.9 air-goal success from epoch 11
     # in pilot runs, proprio_baseline from 6, plus about 15 (docs/deviations.md, "Learning-curve budgets")

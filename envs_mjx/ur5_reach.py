@@ -77,7 +77,7 @@ class UR5Reach(JointReachEnv):
     name = "ur5_reach"
     # the main command's task: one cycle of 160 envs per epoch (the default's 16 × 10 episodes and 400 updates), whose
     # epoch steps the physics 100 times in a row instead of 550 (evaluation: 160 episodes in the cycles' scan), and
-    # learns as fast (docs/results.md, "Learning parity of the speed levers"). The learning curves' budget: the
+    # learns as fast (docs/performance.md, "Learning parity of the speed levers"). The learning curves' budget: the
     # visual agents near their plateau by epoch 150 in pilot runs (docs/deviations.md, "Learning-curve budgets")
     task = Task(
         contract="docs/tasks.md#ur5_reach",

@@ -76,7 +76,7 @@ def command(main: Callable[[], int]) -> int:
 
     The objects alive when `main` ends are then frozen (`gc.freeze`): the process is about to exit, and the
     interpreter's last garbage collection over the millions of objects of JAX, MuJoCo and Orbax would lengthen every
-    command's exit (docs/results.md, "The main command"). Exit handlers still run and files still close."""
+    command's exit (docs/performance.md, "The main command"). Exit handlers still run and files still close."""
     try:
         return main()
     except KeyboardInterrupt:

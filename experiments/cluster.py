@@ -273,6 +273,15 @@ def import_ray(local: bool = False):
     return ray
 
 
+def init_ray(ray, **options) -> None:
+    """`ray.init(**options)` without JAX's warning about a fork in a threaded process: Ray starts its servers with
+    `subprocess.Popen` and a `preexec_fn` (signal masks, death signal), which runs in the forked child only until it
+    execs the server, and no JAX runs there; the warning is JAX's at-fork hook, raised for every fork."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        ray.init(**options)
+
+
 def start_ray(ray, address: str | None) -> None:
     """Join the Ray cluster at `address` (checked first, in 30 s at most: `check_reachable`, `check_joinable`; 'auto':
     the one running on this machine), or start a local one; ConfigError, one line, when Ray cannot."""
@@ -281,9 +290,7 @@ def start_ray(ray, address: str | None) -> None:
             check_reachable(address)
         check_joinable(address)
     try:
-        with warnings.catch_warnings():  # JAX's about fork in a threaded process: Ray's processes fork and exec
-            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-            ray.init(address=address, include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING)
+        init_ray(ray, address=address, include_dashboard=False, log_to_driver=True, logging_level=logging.WARNING)
     except Exception as err:  # no cluster at 'auto', a cluster of another Ray version, a local Ray that fails
         what = f"--ray-address {address}: Ray could not join the cluster" if address else "--ray: Ray could not start"
         raise ConfigError(f"{what} ({type(err).__name__}: {first_line(err)})") from None

@@ -97,7 +97,7 @@ def leaf_name(path: tuple) -> str:
 def digest(state: Any) -> dict:
     """The digest item of a checkpoint of `state`: {"wsum": `wsum_digest`} where the state lies whole in this
     process on GPUs (or other accelerators), so that its gigabytes of replay frames are not read back to the host
-    for it (CRC-32 of a NICOL state's gigabytes was most of a save; docs/results.md, "What a checkpoint costs");
+    for it (CRC-32 of a NICOL state's gigabytes was most of a save; docs/performance.md, "What a checkpoint costs");
     else {"crc32": `crc32_digest`}, which a CPU computes some ten times faster."""
     return {"wsum": wsum_digest(state)} if _on_accelerators(state) else {"crc32": crc32_digest(state)}
 

@@ -102,7 +102,7 @@ def seed_sharding(devices: Sequence[jax.Device], shards: int = 1) -> Any:
 def over_seeds(fn: Callable) -> Callable:
     """`fn` mapped over the leading seed axis of its arguments and results: `jax.vmap(fn)`, except that an axis of
     one seed runs `fn` on its only row. Same maths and random draws, but XLA compiles a vmap's size-1 batch axis
-    into slower code, which also takes longer to compile (docs/results.md, "The main command"). Its floats round
+    into slower code, which also takes longer to compile (docs/performance.md, "The main command"). Its floats round
     otherwise than in the vmapped program, so a one-seed run is not bitwise the one before."""
     vmapped = jax.vmap(fn)
 

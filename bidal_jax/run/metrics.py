@@ -21,7 +21,7 @@ from bidal_jax.run.runfiles import number, read_csv, write_atomic
 def _import_without_torch(module: str):
     """`module` imported with PyTorch hidden unless it is imported already: tensorboardX imports torch where it is
     installed only to accept torch tensors, which these scalars never are, and that import costs seconds of a run's
-    start (docs/results.md, "The main command")."""
+    start (docs/performance.md, "The main command")."""
     if "torch" in sys.modules:
         return importlib.import_module(module)
     sys.modules["torch"] = None  # `import torch` raises ImportError while this entry is None

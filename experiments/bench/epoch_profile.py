@@ -14,7 +14,7 @@ updates, the optimiser, evaluation: `tracing.component`), then, per device strea
 its events add up to, how many there are, and its largest operations.
 On a GPU the event count of the compute stream is the number of kernels an epoch launches: when
 it, rather than the work per kernel, sets the epoch's time, more seeds per device cost little and
-more devices gain little (docs/results.md, "Where the time goes").
+more devices gain little (docs/performance.md, "Where the time goes").
 """
 
 from __future__ import annotations

@@ -1,16 +1,17 @@
-"""docs/results.md, written from the figures that live beside the runs in results/.
+"""docs/results.md and docs/performance.md, written from the figures that live beside the runs in results/.
 
     python -m experiments.paper.results_docs [--check]
 
-Each folder of `FOLDERS` under results/ holds figures.json: a list of sections, each with its part of the
-document (one of `PARTS`), title, `about` (what it measures), the command that measures it, the machine, the date
-and commit the figures were recorded at, and its table: given as {"head": [...], "rows": [[...], ...]} (figures
-entered by hand, such as timings) or the name of a table computed from run files (`TABLES`), whose "runs" field
-says which (paths relative to results/). Optional: a `note` (what the figures say) and a `figure` (an image in the
-folder). A measurement that is superseded is replaced in its figures.json; git keeps its history.
+Each folder of `FOLDERS` under results/ holds figures.json: a list of sections, each with its part of the documents
+(one of `PARTS`; `PAGES` says which page holds each part), title, `about` (what it measures), the command that
+measures it, the machine, the date and commit the figures were recorded at, and its table: given as {"head": [...],
+"rows": [[...], ...]} (figures entered by hand, such as timings) or the name of a table computed from run files
+(`TABLES`), whose "runs" field says which (paths relative to results/). Optional: a `note` (what the figures say)
+and a `figure` (an image in the folder). A measurement that is superseded is replaced in its figures.json; git keeps
+its history.
 
-The command writes docs/results.md (a pure function of those files, `document`); `--check` writes nothing and
-exits 1 when the file is not what it would write, as tests/experiments/paper/test_results_docs.py checks. Exit codes: 2
+The command writes both pages (each a pure function of those files, `document`); `--check` writes nothing and
+exits 1 when a page is not what it would write, as tests/experiments/paper/test_results_docs.py checks. Exit codes: 2
 a figures.json or run file that cannot be read, 4 the write failed (one `error: ...` line each), 130 Ctrl-C.
 """
 
@@ -33,23 +34,26 @@ from experiments.paper import grid, protocol, rungs
 
 PROG = "python -m experiments.paper.results_docs"
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-DOC = os.path.join("docs", "results.md")
 PARTS = ("Performance", "Learning (paper Fig. 4)", "Noise (paper Table II)", "Transfer (paper Fig. 6)",
          "Reliability")
+# each page, its title and its parts: the learning results apart from the speed figures
+PAGES = {os.path.join("docs", "results.md"): ("Results", PARTS[1:]),
+         os.path.join("docs", "performance.md"): ("Performance", PARTS[:1])}
 # the folders of results/ in the order of their sections; each is linked from its sections
 FOLDERS = ("scaling", "parity", "floors", "curves", "pilots", "lambda", "lift", "strides", "vision_probe", "camera",
            "ladder", "noise", "noise_probe", "transfer", "reliability")
 FIELDS = ("part", "title", "about", "command", "machine", "date", "commit", "table")
 LAST_N = 10  # the final success's window: each seed's mean over its last 10 epochs
 HEAD = f"""<!-- written by `{PROG}` from results/*/figures.json and the runs beside them: edit those -->
-# Results
+# {{title}}
 
 Written by `{PROG}` from each experiment's figures.json and run folders under results/. Every
 section names what it measures, the command, the machine, and the date and commit of its figures. Success is the
 evaluation success rate (deterministic policy, success at the episode's last step), the mean over seeds; "final" is
 the mean ± std over seeds of each seed's mean over its last {LAST_N} epochs; AUC is the mean of the seed-mean success
 over the epochs run. The paper's claims judged on these runs are in [results/claims.md](../results/claims.md), how
-far each verdict bears on the paper in [reproduction.md](reproduction.md)."""
+far each verdict bears on the paper in [reproduction.md](reproduction.md); the learning results are in
+[results.md](results.md), the speed figures in [performance.md](performance.md)."""
 
 
 def sweep_curve(path: str, label: str) -> report.Curve:
@@ -296,31 +300,35 @@ def section_text(section: dict, root: str) -> str:
     return "\n\n".join(parts)
 
 
-def document(root: str, folders: Sequence[str]) -> str:
-    """docs/results.md's text from the figures of `folders` and the runs under `root` (a results/ folder)."""
+def document(root: str, folders: Sequence[str], page: str = os.path.join("docs", "results.md")) -> str:
+    """A page's text (a key of `PAGES`) from the figures of `folders` and the runs under `root` (a results/
+    folder)."""
     sections = load_sections(root, folders)
-    parts = [HEAD]
-    for part in PARTS:
+    title, page_parts = PAGES[page]
+    parts = [HEAD.format(title=title)]
+    for part in page_parts:
         parts += [f"## {part}"] + [section_text(s, root) for s in sections if s["part"] == part]
     return "\n\n".join(parts) + "\n"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description="Write docs/results.md from results/*/figures.json.")
-    parser.add_argument("--check", action="store_true", help=f"write nothing; exit 1 when {DOC} is not what "
-                        "the command writes")
+    parser = argparse.ArgumentParser(prog=PROG, description=f"Write {' and '.join(PAGES)} from "
+                                     "results/*/figures.json.")
+    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is not what the "
+                        "command writes")
     args = parser.parse_args(argv)
-    path = os.path.join(REPO, DOC)
     try:
-        text = document(os.path.join(REPO, "results"), FOLDERS)
-        if args.check:
-            with open(path, encoding="utf-8") as f:
-                if f.read() == text:
-                    return 0
-            print(f"error: {DOC} is not what `{PROG}` writes: run it", file=sys.stderr)
-            return 1
-        with rundir.writing(path):
-            runfiles.write_atomic(path, text)
+        texts = {page: document(os.path.join(REPO, "results"), FOLDERS, page) for page in PAGES}
+        for page, text in texts.items():
+            path = os.path.join(REPO, page)
+            if args.check:
+                with open(path, encoding="utf-8") as f:
+                    if f.read() != text:
+                        print(f"error: {page} is not what `{PROG}` writes: run it", file=sys.stderr)
+                        return 1
+                continue
+            with rundir.writing(path):
+                runfiles.write_atomic(path, text)
     except (OSError, ValueError, KeyError, rundir.DiskError) as err:  # report.RunError is a ValueError
         return cli.exit_code(err)
     return 0

@@ -57,7 +57,7 @@ def epochs(run_dir) -> list[int]:
 @pytest.fixture(scope="module")
 def local_ray():
     """A local Ray of 2 CPUs for this module's grids (`cluster.run_cells` leaves a running Ray as it is)."""
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=True)
+    cluster.init_ray(ray, num_cpus=2, include_dashboard=False, log_to_driver=True)
     yield
     ray.shutdown()
 

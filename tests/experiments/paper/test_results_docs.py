@@ -1,5 +1,6 @@
-"""docs/results.md is what `python -m experiments.paper.results_docs` writes from results/*/figures.json and the runs
-beside them; every folder of results/ has its sections; and the command renders, checks and refuses as it says."""
+"""docs/results.md and docs/performance.md are what `python -m experiments.paper.results_docs` writes from
+results/*/figures.json and the runs beside them; every folder of results/ has its sections; and the command renders,
+checks and refuses as it says."""
 
 import json
 import os
@@ -16,20 +17,23 @@ SECTION = {"part": "Performance", "title": "An epoch", "about": "What it measure
            "table": {"head": ["what", "s"], "rows": [["an epoch", "1.0"]]}, "note": "What it says."}
 
 
-def test_docs_results_is_what_the_command_writes():
-    with open(os.path.join(REPO, results_docs.DOC), encoding="utf-8") as f:
+@pytest.mark.parametrize("page", list(results_docs.PAGES))
+def test_each_page_is_what_the_command_writes(page):
+    with open(os.path.join(REPO, page), encoding="utf-8") as f:
         committed = f.read()
-    assert committed == results_docs.document(RESULTS, results_docs.FOLDERS), \
-        f"{results_docs.DOC} is not what `{results_docs.PROG}` writes: run it"
+    assert committed == results_docs.document(RESULTS, results_docs.FOLDERS, page), \
+        f"{page} is not what `{results_docs.PROG}` writes: run it"
     assert committed.startswith(f"<!-- written by `{results_docs.PROG}`")
-    assert len(committed.splitlines()) <= 440
+    assert len(committed.splitlines()) <= 400
 
 
 def test_every_folder_of_results_has_its_sections_and_a_link():
     folders = {name for name in os.listdir(RESULTS) if os.path.isdir(os.path.join(RESULTS, name))}
     assert folders == set(results_docs.FOLDERS)
-    with open(os.path.join(REPO, results_docs.DOC), encoding="utf-8") as f:
-        text = f.read()
+    text = ""
+    for page in results_docs.PAGES:
+        with open(os.path.join(REPO, page), encoding="utf-8") as f:
+            text += f.read()
     assert [folder for folder in sorted(folders) if f"](../results/{folder}/)" not in text] == []
 
 
@@ -40,11 +44,12 @@ def write_figures(root, sections, folder="x"):
 
 def test_a_section_gives_its_record_beside_its_table_then_its_note_and_figure(tmp_path):
     write_figures(tmp_path, [{**SECTION, "figure": "curves.png"}])
-    text = results_docs.document(str(tmp_path), ["x"])
+    text = results_docs.document(str(tmp_path), ["x"], os.path.join("docs", "performance.md"))
     assert ("### An epoch\n\nWhat it measures.\n\nCommand: `python -m x`. Machine: one machine. Recorded 2026-01-01 "
             "at commit abc1234; data: [results/x/](../results/x/).\n\n| what | s |\n| --- | --- |\n| an epoch | 1.0 |"
             "\n\nWhat it says.\n\n![An epoch](../results/x/curves.png)\n") in text
-    assert text.index("## Performance") < text.index("### An epoch") < text.index("## Learning")
+    assert text.index("# Performance") < text.index("## Performance") < text.index("### An epoch")
+    assert "### An epoch" not in results_docs.document(str(tmp_path), ["x"])  # a part on its own page alone
 
 
 @pytest.mark.parametrize("change, message", [
@@ -56,7 +61,7 @@ def test_a_bad_section_is_refused_naming_its_file(tmp_path, change, message):
     section = {k: v for k, v in {**SECTION, **change}.items() if v is not None}
     write_figures(tmp_path, [section])
     with pytest.raises(ValueError, match=message):
-        results_docs.document(str(tmp_path), ["x"])
+        results_docs.document(str(tmp_path), ["x"], os.path.join("docs", "performance.md"))
 
 
 def test_check_fails_until_the_command_has_written_the_file(tmp_path, monkeypatch, capsys):
