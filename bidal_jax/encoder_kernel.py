@@ -18,12 +18,14 @@ prepares from the frame or the kernels, outside the kernel:
   matrix (`bidal_jax.conv_matrices.toeplitz_matrix`), accumulated over the positions; the columns are padded to a
   power of two with zeros.
 
-bf16 inputs (or the branch's dtype), float32 accumulation. `jax.custom_vjp`: the backward kernel reads the forward's
-output (ELU's derivative is a function of its output) and its cotangent, and recomputes layers 1 and 2 from the
-frames, one layer-2 position at a time, its positions grouped by the layer-3 taps that read them (so that each
-group's taps are known when the kernel is traced); it accumulates the three layers' weight and bias gradients per
-block, and XLA sums the blocks. Frames are data: no gradient reaches the image. On a GPU the kernels compile
-through Triton; elsewhere they run in Pallas's interpret mode (slow: tests only).
+bf16 inputs (or the branch's dtype), float32 accumulation. `jax.custom_vjp`: the backward reads the forward's output
+(ELU's derivative is a function of its output) and its cotangent. A first kernel recomputes layers 1 and 2 from the
+frames, one layer-2 position at a time, and for each of its taps reads the layer-3 output that reads the position
+through it (a table; a branch skips the taps no output reads), writing layer 2's output and gradient [N, n2·F]; a
+second kernel accumulates the three layers' weight gradients one tap at a time (a few [F, F] accumulators live, not
+19, which would not fit a thread's registers), recomputing layer 1; XLA sums the blocks' partial gradients. Frames
+are data: no gradient reaches the image. On a GPU the kernels compile through Triton; elsewhere they run in Pallas's
+interpret mode (slow: tests only).
 """
 
 from __future__ import annotations
@@ -94,8 +96,7 @@ def check_supported(strides: tuple[int, ...], image_shape: tuple[int, ...], chan
 def _geometry(strides: tuple[int, ...], image_shape: tuple[int, ...]) -> dict:
     """The map sizes of the fused layers, and the tables that stand in for gathers, for each layer-2 position and
     tap t (row-major): `taps2`, the layer-1 patch it reads (n1, the zero patch, in the padding); `outs3`, the layer-3
-    output that reads it through tap t (-1: none); `order` and `groups`, the layer-2 positions grouped by the set of
-    layer-3 taps that read them: (taps, first index in `order`, count) a group."""
+    output that reads it through tap t (-1: none)."""
     side1 = image_shape[0] // KERNEL, image_shape[1] // KERNEL
     side2 = -(-side1[0] // strides[1]), -(-side1[1] // strides[1])
     side3 = -(-side2[0] // strides[2]), -(-side2[1] // strides[2])
@@ -112,15 +113,8 @@ def _geometry(strides: tuple[int, ...], image_shape: tuple[int, ...]) -> dict:
     rows, cols = rows // strides[2], cols // strides[2]
     inside &= (rows < side3[0]) & (cols < side3[1])
     outs3 = np.where(inside, rows * side3[1] + cols, -1).reshape(n2, TAPS)
-    reading = [tuple(np.flatnonzero(row >= 0)) for row in outs3]
-    groups, order = [], []
-    for taps in sorted(set(reading) - {()}):  # a position no layer-3 output reads has no gradient
-        members = [pos for pos, read in enumerate(reading) if read == taps]
-        groups.append((taps, len(order), len(members)))
-        order += members
     return {"strides": tuple(strides[:FUSED_LAYERS]), "side2": side2, "side3": side3, "n1": n1, "n2": n2,
-            "taps2": taps2.reshape(-1).astype(np.int32), "outs3": outs3.reshape(-1).astype(np.int32),
-            "order": np.asarray(order, np.int32), "groups": tuple(groups)}
+            "taps2": taps2.reshape(-1).astype(np.int32), "outs3": outs3.reshape(-1).astype(np.int32)}
 
 
 def space_to_depth(image: jax.Array) -> jax.Array:
@@ -189,46 +183,65 @@ def _forward_kernel(taps2_ref, s_ref, w1_ref, b1_ref, w2_ref, b2_ref, m3_ref, b3
     h3_ref[...] = _elu(z3 + b3_ref[...]).astype(h3_ref.dtype)
 
 
-def _backward_kernel(taps2_ref, outs3_ref, order_ref, s_ref, h3_ref, g_ref, w1_ref, b1_ref, w2_ref, b2_ref, w3_ref,
-                     dw1_ref, db1_ref, dw2_ref, db2_ref, dw3_ref, db3_ref, *, n1: int, groups: tuple, dtype):
+def _dz3(g_ref, h3_ref, out, features: int, dtype) -> jax.Array:
+    """Layer 3's pre-activation gradient [B, F] at its output position `out`, from its output and cotangent."""
+    cols = pl.ds(out * features, features)
+    return (g_ref[:, cols].astype(jnp.float32) * _elu_grad_of_output(h3_ref[:, cols].astype(jnp.float32))).astype(dtype)
+
+
+def _layer2_grad_kernel(taps2_ref, outs3_ref, s_ref, h3_ref, g_ref, w1_ref, b1_ref, w2_ref, b2_ref, w3_ref,
+                        h2_ref, dz2_ref, db2_ref, db3_ref, *, n1: int, n2: int, dtype):
+    """Layer 2's output and pre-activation gradient at each of its positions ([B, n2·F] each, in `dtype`), and
+    the block's bias gradients of layers 2 and 3."""
     features = w2_ref.shape[-1]
     w1, b1, b2 = w1_ref[...].astype(dtype), b1_ref[...], b2_ref[...]
     db3_ref[...] = jnp.sum(g_ref[...].astype(jnp.float32) * _elu_grad_of_output(h3_ref[...].astype(jnp.float32)),
                            axis=0, keepdims=True)
 
-    def position(i, grads, *, first: int, reading: tuple[int, ...]):
-        dw1, db1, db2, dw2, dw3 = grads
-        dw2, dw3 = list(dw2), list(dw3)
-        pos = order_ref[first + i]
+    def position(pos, db2):
         z2 = _layer_2(s_ref, taps2_ref, w1, b1, w2_ref, b2, pos, n1, dtype)
-        h2, dh2 = _elu(z2).astype(dtype), 0.0
-        for t in reading:  # the layer-3 outputs that read this position, each through its tap t
-            cols = pl.ds(outs3_ref[pos * TAPS + t] * features, features)
-            dz3 = g_ref[:, cols].astype(jnp.float32) * _elu_grad_of_output(h3_ref[:, cols].astype(jnp.float32))
-            dz3 = dz3.astype(dtype)
-            dw3[t] = dw3[t] + _t_dot(h2, dz3)
-            dh2 = dh2 + _dot_t(dz3, _tap(w3_ref, t, dtype))
+        dh2 = jnp.zeros_like(z2)
+        for t in range(TAPS):  # the layer-3 output that reads this position through tap t, if one does
+            out = outs3_ref[pos * TAPS + t]
+            dh2 = jax.lax.cond(out >= 0, lambda dh2, out=out, t=t: dh2 + _dot_t(
+                _dz3(g_ref, h3_ref, out, features, dtype), _tap(w3_ref, t, dtype)), lambda dh2: dh2, dh2)
         dz2 = dh2 * _elu_grad(z2)
-        db2 = db2 + dz2  # summed over the frames once, at the end
-        dz2 = dz2.astype(dtype)
-        for t in range(TAPS):  # layer 1 recomputed: fewer values live than if kept from layer 2's pass
-            patches, z1, inside = _layer_1(s_ref, taps2_ref, w1, b1, pos, t, n1, dtype)
-            dw2[t] = dw2[t] + _t_dot((_elu(z1) * inside).astype(dtype), dz2)
-            dz1 = _dot_t(dz2, _tap(w2_ref, t, dtype)) * _elu_grad(z1) * inside
-            dw1 = dw1 + _t_dot(patches, dz1.astype(dtype))
-            db1 = db1 + dz1
-        return dw1, db1, db2, tuple(dw2), tuple(dw3)
+        cols = pl.ds(pos * features, features)
+        h2_ref[:, cols] = _elu(z2).astype(h2_ref.dtype)
+        dz2_ref[:, cols] = dz2.astype(dz2_ref.dtype)
+        return db2 + dz2  # summed over the frames once, at the end
 
-    square, frames = jnp.zeros((features, features), jnp.float32), jnp.zeros(g_ref.shape[:1] + (features,), jnp.float32)
-    grads = (jnp.zeros((PIXELS, features), jnp.float32), frames, frames, (square,) * TAPS, (square,) * TAPS)
-    for reading, first, count in groups:
-        grads = jax.lax.fori_loop(0, count, functools.partial(position, first=first, reading=reading), grads)
-    dw1, db1, db2, dw2, dw3 = grads
-    dw1_ref[...] = dw1
-    db1_ref[...], db2_ref[...] = jnp.sum(db1, axis=0, keepdims=True), jnp.sum(db2, axis=0, keepdims=True)
+    db2 = jax.lax.fori_loop(0, n2, position, jnp.zeros(g_ref.shape[:1] + (features,), jnp.float32))
+    db2_ref[...] = jnp.sum(db2, axis=0, keepdims=True)
+
+
+def _weight_grad_kernel(taps2_ref, outs3_ref, s_ref, h2_ref, dz2_ref, h3_ref, g_ref, w1_ref, b1_ref, w2_ref,
+                        dw1_ref, db1_ref, dw2_ref, dw3_ref, *, n1: int, n2: int, dtype):
+    """The block's weight gradients of layers 1 to 3 and bias gradient of layer 1, one tap at a time (few
+    accumulators live), over layer 2's positions; layer 1 recomputed."""
+    features = w2_ref.shape[-1]
+    w1, b1 = w1_ref[...].astype(dtype), b1_ref[...]
+    square = jnp.zeros((features, features), jnp.float32)
+    dw1, db1 = jnp.zeros((PIXELS, features), jnp.float32), jnp.zeros(g_ref.shape[:1] + (features,), jnp.float32)
     for t in range(TAPS):
-        dw2_ref[t * features: (t + 1) * features, :] = dw2[t]
-        dw3_ref[t * features: (t + 1) * features, :] = dw3[t]
+        w2 = _tap(w2_ref, t, dtype)
+
+        def position(pos, grads, t=t, w2=w2):
+            dw1, db1, dw2, dw3 = grads
+            patches, z1, inside = _layer_1(s_ref, taps2_ref, w1, b1, pos, t, n1, dtype)
+            cols = pl.ds(pos * features, features)
+            dz2, h2 = dz2_ref[:, cols], h2_ref[:, cols]
+            dw2 = dw2 + _t_dot((_elu(z1) * inside).astype(dtype), dz2)
+            dz1 = _dot_t(dz2, w2) * _elu_grad(z1) * inside
+            out = outs3_ref[pos * TAPS + t]
+            dw3 = jax.lax.cond(out >= 0, lambda dw3: dw3 + _t_dot(h2, _dz3(g_ref, h3_ref, out, features, dtype)),
+                               lambda dw3: dw3, dw3)
+            return dw1 + _t_dot(patches, dz1.astype(dtype)), db1 + dz1, dw2, dw3
+
+        dw1, db1, dw2, dw3 = jax.lax.fori_loop(0, n2, position, (dw1, db1, square, square))
+        dw2_ref[t * features: (t + 1) * features, :] = dw2
+        dw3_ref[t * features: (t + 1) * features, :] = dw3
+    dw1_ref[...], db1_ref[...] = dw1, jnp.sum(db1, axis=0, keepdims=True)
 
 
 def _whole(*arrays) -> list[pl.BlockSpec]:
@@ -268,17 +281,32 @@ def _forward(patches, weights, geometry, dtype, block: int) -> jax.Array:
 
 
 def _backward(patches, h3, g, weights, geometry, dtype, block: int) -> dict[str, jax.Array]:
-    tables = [jnp.asarray(geometry[name]) for name in ("taps2", "outs3", "order")]
-    blocks = patches.shape[0] // block
-    operands = [weights[name] for name in ("w1", "b1", "w2", "b2", "w3")]
-    kernel = functools.partial(_backward_kernel, n1=geometry["n1"], groups=geometry["groups"], dtype=dtype)
-    partial_sums = pl.pallas_call(
-        kernel, out_shape=[jax.ShapeDtypeStruct((blocks, *weights[name].shape), jnp.float32) for name in WEIGHTS],
+    """The weights' gradients: per block by two kernels (layer 2's output and gradient, then the weight gradients
+    one tap at a time), summed over the blocks."""
+    tables = [jnp.asarray(geometry[name]) for name in ("taps2", "outs3")]
+    n, blocks, features = patches.shape[0], patches.shape[0] // block, weights["w2"].shape[-1]
+    width = geometry["n2"] * features
+    sizes = {"n1": geometry["n1"], "n2": geometry["n2"], "dtype": dtype}
+    layer2 = [weights[name] for name in ("w1", "b1", "w2", "b2", "w3")]
+    h2, dz2, db2, db3 = pl.pallas_call(
+        functools.partial(_layer2_grad_kernel, **sizes),
+        out_shape=[jax.ShapeDtypeStruct((n, width), dtype)] * 2 + [
+            jax.ShapeDtypeStruct((blocks, *weights[name].shape), jnp.float32) for name in ("b2", "b3")],
         grid=(blocks,),
-        in_specs=[*_whole(*tables), *(_frames(block, a.shape) for a in (patches, h3, g)), *_whole(*operands)],
-        out_specs=[_partials(weights[name].shape) for name in WEIGHTS], **_options())(*tables, patches, h3, g,
-                                                                                        *operands)
-    return {name: grad.sum(axis=0) for name, grad in zip(WEIGHTS, partial_sums, strict=True)}
+        in_specs=[*_whole(*tables), *(_frames(block, a.shape) for a in (patches, h3, g)), *_whole(*layer2)],
+        out_specs=[_frames(block, (n, width))] * 2 + [_partials(weights[name].shape) for name in ("b2", "b3")],
+        **_options())(*tables, patches, h3, g, *layer2)
+    layer1 = [weights[name] for name in ("w1", "b1", "w2")]
+    dw1, db1, dw2, dw3 = pl.pallas_call(
+        functools.partial(_weight_grad_kernel, **sizes),
+        out_shape=[jax.ShapeDtypeStruct((blocks, *weights[name].shape), jnp.float32)
+                   for name in ("w1", "b1", "w2", "w3")],
+        grid=(blocks,),
+        in_specs=[*_whole(*tables), *(_frames(block, a.shape) for a in (patches, h2, dz2, h3, g)), *_whole(*layer1)],
+        out_specs=[_partials(weights[name].shape) for name in ("w1", "b1", "w2", "w3")],
+        **_options())(*tables, patches, h2, dz2, h3, g, *layer1)
+    grads = {"w1": dw1, "b1": db1, "w2": dw2, "b2": db2, "w3": dw3, "b3": db3}
+    return {name: grads[name].sum(axis=0) for name in WEIGHTS}
 
 
 def fused_convs(image: jax.Array, convs: list[tuple[jax.Array, jax.Array]], strides: tuple[int, ...],

@@ -86,7 +86,7 @@ def test_bfloat16_features_and_gradients_are_the_xla_paths_to_bfloat16_rounding(
 
 def test_other_strides_are_the_xla_paths_too():
     """Strides 3,2,1,2: a stride-1 third layer (a 7×7 map whose 784 features pad to 1,024 in the kernel; its positions
-    fall in 9 groups by the taps that read them) and a fourth layer of stride 2, float32."""
+    are read by 4 to 9 of its taps) and a fourth layer of stride 2, float32."""
     strides = (3, 2, 1, 2)
     params, images = seeds_case(1, 5, strides)
     assert_close(features_and_grads("pallas", "float32", params, images, strides),
