@@ -41,9 +41,11 @@ from jax.experimental.pallas import triton as pltriton
 
 from bidal_jax.conv_matrices import same_pads, toeplitz_matrix
 
-BLOCK = 64  # frames per program on a GPU
+# frames and warps per program on a GPU: at 64 frames and 8 warps none of the three kernels spills registers on an
+# H100 (sm_90; 4 warps: the forward's [64, 256] float32 accumulator does); `experiments.bench.encoder` times others
+BLOCK = 64
+NUM_WARPS = 8
 INTERPRET_BLOCK = 16  # frames per program in interpret mode (the smallest tile a Triton dot takes)
-NUM_WARPS = 4
 KERNEL = 3  # the convs' kernel size, the first layer's stride
 TAPS = KERNEL * KERNEL
 FUSED_LAYERS = 3  # the convs the kernel computes; the others are XLA's
