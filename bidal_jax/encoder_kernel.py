@@ -41,8 +41,8 @@ from jax.experimental.pallas import triton as pltriton
 
 from bidal_jax.conv_matrices import same_pads, toeplitz_matrix
 
-# frames and warps per program on a GPU: at 64 frames and 8 warps none of the three kernels spills registers on an
-# H100 (sm_90; 4 warps: the forward's [64, 256] float32 accumulator does); `experiments.bench.encoder` times others
+# frames and warps per program on a GPU: at 64 frames and 8 warps none of the three kernels spills registers (at 4
+# warps the forward's [64, 256] float32 accumulator does); `experiments.bench.encoder` times other tilings
 BLOCK = 64
 NUM_WARPS = 8
 INTERPRET_BLOCK = 16  # frames per program in interpret mode (the smallest tile a Triton dot takes)
