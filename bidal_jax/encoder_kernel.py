@@ -9,7 +9,7 @@ and the dense layer stay XLA matmuls over all the frames (conv_impl "toeplitz"),
 Triton has no in-kernel gather and wants power-of-two tiles, so each fused layer is a matmul of a layout that XLA
 prepares from the frame or the kernels, outside the kernel:
 
-- layer 1 (stride = kernel, unpadded): the frame's space-to-depth patches [N, n1 + 1, 16] (uint8, the 9 pixels of
+- layer 1 (stride = kernel, unpadded): the frames' space-to-depth patches [N / B, n1 + 1, B, 16] (uint8, the 9 pixels of
   each of the n1 patches, zero-padded to 16, then one zero patch) times the kernel [16, F];
 - layer 2: one output position at a time, the sum over its 9 taps of layer 1's output at the tapped patch (found
   by a table of patch indices, the zero patch where the tap falls in the padding, its ELU masked to 0) times the
@@ -119,14 +119,15 @@ def _geometry(strides: tuple[int, ...], image_shape: tuple[int, ...]) -> dict:
             "taps2": taps2.reshape(-1).astype(np.int32), "outs3": outs3.reshape(-1).astype(np.int32)}
 
 
-def space_to_depth(image: jax.Array) -> jax.Array:
-    """The first layer's patches of uint8 frames [N, H, W, 1]: [N, n1 + 1, 16], each row a patch's 3×3 pixels in the
-    kernel's (dy, dx) order, zero-padded to 16, and a last row of zeros (the padding's patch)."""
+def space_to_depth(image: jax.Array, block: int) -> jax.Array:
+    """The first layer's patches of uint8 frames [N, H, W, 1] (N a multiple of `block`), a block of frames at a
+    time: [N / block, n1 + 1, block, 16], each patch's 3×3 pixels in the kernel's (dy, dx) order, zero-padded to 16,
+    then a patch of zeros (the padding's); a patch of a block's frames is contiguous, so a tap reads it at once."""
     n, height, width, _ = image.shape
     rows, cols = height // KERNEL, width // KERNEL
-    x = image[:, : rows * KERNEL, : cols * KERNEL, 0].reshape(n, rows, KERNEL, cols, KERNEL)
-    x = x.transpose(0, 1, 3, 2, 4).reshape(n, rows * cols, TAPS)
-    return jnp.pad(x, ((0, 0), (0, 1), (0, PIXELS - TAPS)))
+    x = image[:, : rows * KERNEL, : cols * KERNEL, 0].reshape(n // block, block, rows, KERNEL, cols, KERNEL)
+    x = x.transpose(0, 2, 4, 1, 3, 5).reshape(n // block, rows * cols, block, TAPS)
+    return jnp.pad(x, ((0, 0), (0, 1), (0, 0), (0, PIXELS - TAPS)))
 
 
 def pack_weights(convs: list[tuple[jax.Array, jax.Array]], geometry: dict) -> dict[str, jax.Array]:
@@ -159,7 +160,7 @@ def _layer_1(s_ref, taps2_ref, w1, b1, pos, t: int, n1: int, dtype) -> tuple[jax
     """Layer 1 at the patch that tap t of layer-2 position `pos` reads: (its pixels [B, 16] in `dtype`, its
     pre-activation [B, F], 1 if the tap is inside the frame else 0)."""
     index = taps2_ref[pos * TAPS + t]
-    patches = (s_ref[:, index, :].astype(jnp.float32) * (1.0 / 255.0)).astype(dtype)
+    patches = (s_ref[index, :, :].astype(jnp.float32) * (1.0 / 255.0)).astype(dtype)
     return patches, _dot(patches, w1) + b1, (index < n1).astype(jnp.float32)
 
 
@@ -256,6 +257,11 @@ def _frames(block: int, shape: tuple[int, ...]) -> pl.BlockSpec:
     return pl.BlockSpec((block, *shape[1:]), lambda i: (i,) + (0,) * (len(shape) - 1))
 
 
+def _patches(shape: tuple[int, ...]) -> pl.BlockSpec:
+    """Program i's block of patches [N / block, n1 + 1, block, 16] (`space_to_depth`)."""
+    return pl.BlockSpec((None, *shape[1:]), lambda i: (i, 0, 0, 0))
+
+
 def _partials(shape: tuple[int, ...]) -> pl.BlockSpec:
     """Program i's own slice of per-block partial sums [blocks, ...]."""
     return pl.BlockSpec((None, *shape), lambda i: (i,) + (0,) * len(shape))
@@ -272,13 +278,13 @@ WEIGHTS = ("w1", "b1", "w2", "b2", "w3", "b3")
 
 
 def _forward(patches, weights, geometry, dtype, block: int) -> jax.Array:
-    n, taps2 = patches.shape[0], jnp.asarray(geometry["taps2"])
+    n, taps2 = patches.shape[0] * block, jnp.asarray(geometry["taps2"])
     operands = [weights["w1"], weights["b1"], weights["w2"], weights["b2"],
                 _layer3_matrix(weights["w3"], geometry).astype(dtype), weights["b3"]]
     width = weights["b3"].shape[1]
     kernel = functools.partial(_forward_kernel, n1=geometry["n1"], n2=geometry["n2"], dtype=dtype)
     return pl.pallas_call(kernel, out_shape=jax.ShapeDtypeStruct((n, width), dtype), grid=(n // block,),
-                          in_specs=[*_whole(taps2), _frames(block, patches.shape), *_whole(*operands)],
+                          in_specs=[*_whole(taps2), _patches(patches.shape), *_whole(*operands)],
                           out_specs=_frames(block, (n, width)), **_options())(taps2, patches, *operands)
 
 
@@ -286,7 +292,8 @@ def _backward(patches, h3, g, weights, geometry, dtype, block: int) -> dict[str,
     """The weights' gradients: per block by two kernels (layer 2's output and gradient, then the weight gradients
     one tap at a time), summed over the blocks."""
     tables = [jnp.asarray(geometry[name]) for name in ("taps2", "outs3")]
-    n, blocks, features = patches.shape[0], patches.shape[0] // block, weights["w2"].shape[-1]
+    blocks, features = patches.shape[0], weights["w2"].shape[-1]
+    n = blocks * block
     width = geometry["n2"] * features
     sizes = {"n1": geometry["n1"], "n2": geometry["n2"], "dtype": dtype}
     layer2 = [weights[name] for name in ("w1", "b1", "w2", "b2", "w3")]
@@ -295,7 +302,8 @@ def _backward(patches, h3, g, weights, geometry, dtype, block: int) -> dict[str,
         out_shape=[jax.ShapeDtypeStruct((n, width), dtype)] * 2 + [
             jax.ShapeDtypeStruct((blocks, *weights[name].shape), jnp.float32) for name in ("b2", "b3")],
         grid=(blocks,),
-        in_specs=[*_whole(*tables), *(_frames(block, a.shape) for a in (patches, h3, g)), *_whole(*layer2)],
+        in_specs=[*_whole(*tables), _patches(patches.shape), *(_frames(block, a.shape) for a in (h3, g)),
+                  *_whole(*layer2)],
         out_specs=[_frames(block, (n, width))] * 2 + [_partials(weights[name].shape) for name in ("b2", "b3")],
         **_options())(*tables, patches, h3, g, *layer2)
     layer1 = [weights[name] for name in ("w1", "b1", "w2")]
@@ -304,7 +312,8 @@ def _backward(patches, h3, g, weights, geometry, dtype, block: int) -> dict[str,
         out_shape=[jax.ShapeDtypeStruct((blocks, *weights[name].shape), jnp.float32)
                    for name in ("w1", "b1", "w2", "w3")],
         grid=(blocks,),
-        in_specs=[*_whole(*tables), *(_frames(block, a.shape) for a in (patches, h2, dz2, h3, g)), *_whole(*layer1)],
+        in_specs=[*_whole(*tables), _patches(patches.shape), *(_frames(block, a.shape) for a in (h2, dz2, h3, g)),
+                  *_whole(*layer1)],
         out_specs=[_partials(weights[name].shape) for name in ("w1", "b1", "w2", "w3")],
         **_options())(*tables, patches, h2, dz2, h3, g, *layer1)
     grads = {"w1": dw1, "b1": db1, "w2": dw2, "b2": db2, "w3": dw3, "b3": db3}
@@ -323,7 +332,7 @@ def fused_convs(image: jax.Array, convs: list[tuple[jax.Array, jax.Array]], stri
     dtype = jnp.dtype(dtype)
     block = BLOCK if jax.default_backend() == "gpu" else INTERPRET_BLOCK
     n = image.shape[0]
-    patches = space_to_depth(jnp.pad(image, ((0, -n % block), (0, 0), (0, 0), (0, 0))))
+    patches = space_to_depth(jnp.pad(image, ((0, -n % block), (0, 0), (0, 0), (0, 0))), block)
 
     @jax.custom_vjp
     def layers(patches, weights):
