@@ -13,7 +13,7 @@ import dataclasses
 from typing import Any, Callable
 
 from bidal_jax.agents import AGENTS, Agent, get  # noqa: F401 - AGENTS re-exported for the command lines
-from bidal_jax.networks import CONVS, parse_strides
+from bidal_jax.networks import CONVS, FUSED_IMPL, parse_strides
 
 
 class ConfigError(ValueError):
@@ -57,7 +57,7 @@ def _name_list(v: str) -> bool:
     return all(name.isidentifier() for name in names) and len(set(names)) == len(names)
 
 
-CONV_IMPLS = tuple(CONVS)  # NetworkConfig.conv_impl: "patch", "banded", "toeplitz"
+CONV_IMPLS = (*CONVS, FUSED_IMPL)  # NetworkConfig.conv_impl: "patch", "banded", "toeplitz", "pallas"
 # conv implementations of earlier versions, each the same function of the same parameters as "patch" (`recorded`)
 REMOVED_CONV_IMPLS = ("taps", "native", "stacked")
 VISION_DTYPES = ("float32", "bfloat16")  # NetworkConfig.vision_dtype
@@ -94,7 +94,10 @@ class NetworkConfig:
         "either compare and resume alike): 'patch' (strided slices and one matmul: the fast form on a CPU) or "
         "'banded' (input rows times band matrices of the kernel: the fast form on a GPU, the NICOL presets'; "
         "docs/performance.md, 'Image updates') or 'toeplitz' (banded, but a small layer, the last two of the default "
-        "strides, as one matmul of the whole frame by the conv's full matrix: no windows gathered)",
+        "strides, as one matmul of the whole frame by the conv's full matrix: no windows gathered) or 'pallas' (the "
+        "first three convs and ELUs in one fused kernel, activations kept on chip, the fourth as toeplitz: "
+        "bidal_jax/encoder_kernel.py; a GPU compiles it, a CPU interprets it slowly; a first stride of 3 and 16 or "
+        "more channels, a power of two)",
         one_of(CONV_IMPLS),
     )
     vision_dtype: str = doc(

@@ -24,6 +24,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from bidal_jax import encoder_kernel
+from bidal_jax.conv_matrices import same_pads, toeplitz_matrix
+
 
 def parse_strides(text: str) -> tuple[int, ...]:
     """`NetworkConfig.conv_strides` as integers: "3,2,2,1" -> (3, 2, 2, 1); ValueError if it is not
@@ -111,27 +114,15 @@ def _toeplitz_conv(x: jax.Array, kernel: jax.Array, stride: int, pads: tuple[int
     out_h, out_w = (height + top + bottom - k) // stride + 1, (width + left + right - k) // stride + 1
     if height * width * channels * out_h * out_w * features > TOEPLITZ_ENTRIES:
         return _banded_conv(x, kernel, stride, pads)
-    rows = np.arange(height)[:, None, None] == stride * np.arange(out_h)[None, :, None] + np.arange(k) - top
-    cols = np.arange(width)[:, None, None] == stride * np.arange(out_w)[None, :, None] + np.arange(k) - left
-    taps = rows[:, None, :, None, :, None] & cols[None, :, None, :, None, :]  # [H, W, out_h, out_w, k, k]
-    matrix = jnp.einsum("hwpqyx,yxcf->hwcpqf", taps.astype(kernel.dtype), kernel)
-    y = x.reshape(batch, -1) @ matrix.reshape(height * width * channels, -1)
+    y = x.reshape(batch, -1) @ toeplitz_matrix(kernel, height, width, stride, pads)
     return y.reshape(batch, out_h, out_w, features)
-
-
-def _same_pads(height: int, width: int, k: int, stride: int) -> tuple[int, int, int, int]:
-    """The zero rows and columns (top, bottom, left, right) that 'SAME' padding adds around a height × width frame
-    so that a k×k convolution of `stride` gives ⌈height/stride⌉ × ⌈width/stride⌉ outputs, the odd one at the end
-    (as `nn.Conv` and `lax.conv_general_dilated` pad)."""
-    pad_h = max((-(-height // stride) - 1) * stride + k - height, 0)
-    pad_w = max((-(-width // stride) - 1) * stride + k - width, 0)
-    return pad_h // 2, pad_h - pad_h // 2, pad_w // 2, pad_w - pad_w // 2
 
 
 # how a conv is computed (`NetworkConfig.conv_impl`): the same function of the same parameters either way, so a
 # checkpoint of one runs, resumes and compares under the other
 CONVS: dict[str, Callable[..., jax.Array]] = {"patch": _patch_conv, "banded": _banded_conv,
                                                "toeplitz": _toeplitz_conv}
+FUSED_IMPL = "pallas"  # NetworkConfig.conv_impl of the whole branch's convs in one kernel (bidal_jax.encoder_kernel)
 
 
 class PatchConv(nn.Module):
@@ -155,13 +146,17 @@ class PatchConv(nn.Module):
     impl: str = "patch"  # NetworkConfig.conv_impl: a key of CONVS
 
     @nn.compact
+    def weights(self, channels: int) -> tuple[jax.Array, jax.Array]:
+        """The layer's float32 parameters for an input of `channels` channels: kernel [k, k, C, F], bias [F]."""
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.kernel, self.kernel, channels,
+                                                                       self.features))
+        return kernel, self.param("bias", nn.initializers.zeros, (self.features,))
+
     def __call__(self, x: jax.Array) -> jax.Array:
         chex.assert_rank(x, 4)
         _, height, width, channels = x.shape
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (self.kernel, self.kernel, channels,
-                                                                       self.features)).astype(x.dtype)
-        bias = self.param("bias", nn.initializers.zeros, (self.features,)).astype(x.dtype)
-        pads = _same_pads(height, width, self.kernel, self.stride) if self.padding == "SAME" else (0, 0, 0, 0)
+        kernel, bias = (w.astype(x.dtype) for w in self.weights(channels))
+        pads = same_pads(height, width, self.kernel, self.stride) if self.padding == "SAME" else (0, 0, 0, 0)
         return CONVS[self.impl](x, kernel, self.stride, pads) + bias
 
 
@@ -178,17 +173,25 @@ class VisionBranch(nn.Module):
     channels: int
     features: int
     strides: tuple[int, ...] = (3, 2, 2, 1)
-    impl: str = "patch"  # how the convs are computed (PatchConv.impl)
+    impl: str = "patch"  # how the convs are computed (PatchConv.impl), or FUSED_IMPL (a fused kernel)
     dtype: Any = jnp.float32  # what the layers compute in (parameters stay float32); the features come out float32
 
     @nn.compact
     def __call__(self, image: jax.Array) -> jax.Array:
         chex.assert_rank(image, 4)  # [B, H, W, 1] uint8
-        x = image.astype(self.dtype) / 255.0
-        first, *rest = self.strides
-        x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", impl=self.impl)(x))
+        if self.impl == FUSED_IMPL:  # the first layers in one kernel, the others as toeplitz
+            count = encoder_kernel.FUSED_LAYERS
+            fused, rest, impl = self.strides[:count], self.strides[count:], "toeplitz"
+            encoder_kernel.check_supported(self.strides, image.shape[1:], self.channels)
+            inputs = [image.shape[-1]] + [self.channels] * (len(fused) - 1)
+            convs = [PatchConv(self.channels, stride=stride).weights(c) for stride, c in zip(fused, inputs)]
+            x = encoder_kernel.fused_convs(image, convs, fused, self.dtype)
+        else:
+            (first, *rest), impl = self.strides, self.impl
+            x = image.astype(self.dtype) / 255.0
+            x = nn.elu(PatchConv(self.channels, stride=first, padding="VALID", impl=impl)(x))
         for stride in rest:
-            x = nn.elu(PatchConv(self.channels, stride=stride, impl=self.impl)(x))
+            x = nn.elu(PatchConv(self.channels, stride=stride, impl=impl)(x))
         x = x.reshape(x.shape[0], -1)
         return nn.elu(nn.Dense(self.features, dtype=self.dtype)(x)).astype(jnp.float32)
 

@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from bidal_jax.agents import ddpg
-from bidal_jax.config import AGENTS, CONV_IMPLS, NetworkConfig
-from bidal_jax.networks import PatchConv, parse_strides
+from bidal_jax.config import AGENTS, NetworkConfig
+from bidal_jax.networks import CONVS, PatchConv, parse_strides
+
+CONV_IMPLS = tuple(CONVS)  # the layer-wise implementations; the fused "pallas": test_encoder_kernel.py
 
 
 def default_layers() -> list[tuple[int, int, str]]:
