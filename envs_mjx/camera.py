@@ -333,7 +333,10 @@ def _per_batch(windowed: Callable, full: Callable) -> Callable:
     """A geom map of one scene from `windowed` (→ map, fits) that falls back to `full` (→ map) where a geom did not
     fit its window, decided once per batch under vmap: `lax.cond` on a vmapped predicate would run both branches
     for every scene, so the vmap rule maps `windowed` over the whole batch (nested vmaps flattened into one axis)
-    and casts the batch in full only if any scene of it needs that."""
+    and casts the batch in full only if any scene of it needs that. Both are jitted per scene, so that the batches of
+    every width (a run's training envs and its evaluation envs) batch one trace of each instead of tracing the
+    camera's Python again at each width."""
+    windowed, full = jax.jit(windowed), jax.jit(full)
 
     def batched(axis_size, in_batched, args):  # every argument with the vmapped axis leading
         return [a if b else jnp.broadcast_to(a, (axis_size, *a.shape)) for a, b in zip(args, in_batched)]
