@@ -183,6 +183,24 @@ def check_action(action: Any, action_size: int) -> None:
         raise ValueError(f"action contains NaN: {arr}; actions must be finite values in [-1, 1]")
 
 
+def model_digest(mj_model: mujoco.MjModel) -> str:
+    """SHA-256 (hex) of a compiled model's numbers: each array of the `MjModel` (names included, as its `names`
+    buffer) and each field of its `opt` (the physics options) and `stat` (the statistics the solver scales by), by
+    name, but its `signature`. Not of MuJoCo's binary MJB, whose bytes change between releases (4.0.0 and 4.0.1) for
+    one and the same model; a release that adds a model array changes the digest too."""
+    digest = hashlib.sha256()
+    parts = [(name, getattr(mj_model, name)) for name in dir(mj_model) if not name.startswith("_")
+             and name != "signature"]  # the compiler's own hash of the model's structure, not kept in its binary
+    parts += [(f"{struct}.{name}", getattr(getattr(mj_model, struct), name)) for struct in ("opt", "stat")
+              for name in dir(getattr(mj_model, struct)) if not name.startswith("_")]
+    for name, value in sorted(parts, key=lambda part: part[0]):
+        if isinstance(value, (np.ndarray, int, float)):  # arrays and scalars; not methods or nested structs
+            array = np.ascontiguousarray(value)
+            digest.update(f"{name}:{array.dtype}:{array.shape}:".encode())
+            digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
 class Env(abc.ABC):
     """Base class of the MJX tasks. Subclasses set the static facts and implement the hooks.
 
@@ -293,14 +311,12 @@ class Env(abc.ABC):
     @property
     def physics_id(self) -> str:
         """A fingerprint of the physics this env steps and of the scene its camera sees: 16 hex digits of the
-        SHA-256 of its compiled model (MuJoCo's binary MJB, so every number of the model file and of `set_options`
-        counts, the camera's pose and field of view and each geom's group, which decides what the camera draws,
-        among them; a MuJoCo release that changes the format changes it too). Runs record it in config.json
+        SHA-256 of its compiled model's numbers (`model_digest`: every array of the `MjModel` and its `opt` and
+        `stat` fields, so every number of the model file and of `set_options` counts, the camera's pose and field of
+        view and each geom's group, which decides what the camera draws, among them). Runs record it in config.json
         (`bidal_jax.run.loop`), and the grid (`experiments.paper.grid.stale`) and `experiments.paper.claims` mark
         runs made on another model than today's, another camera included, as stale."""
-        buffer = np.zeros(mujoco.mj_sizeModel(self.mj_model), np.uint8)
-        mujoco.mj_saveModel(self.mj_model, None, buffer)
-        return hashlib.sha256(buffer.tobytes()).hexdigest()[:16]
+        return model_digest(self.mj_model)[:16]
 
     def compile_physics(self) -> None:
         """Compile what the physics engine builds at its first launch rather than with the program around it: MuJoCo

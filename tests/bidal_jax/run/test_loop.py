@@ -14,12 +14,14 @@ import time
 import types
 
 import jax
+import mujoco
 import numpy as np
 import pytest
 
 import envs_mjx
 from bidal_jax.config import ConfigError, TrainConfig
 from bidal_jax.run import checkpoint, devices, loop
+from envs_mjx import base
 from experiments import cli, run
 from tests.helpers import REPO, restored_state
 
@@ -130,6 +132,19 @@ def test_physics_id_follows_the_model_options():
     assert len(before) == 16 and envs_mjx.make("planar_reach", render=False).physics_id == before
     env.set_options(iterations=env.mj_model.opt.iterations + 1)
     assert env.physics_id != before
+
+
+def test_the_model_digest_is_of_the_models_numbers_not_of_its_file_format(tmp_path):
+    """A model saved to MuJoCo's binary and loaded back digests as before (a release may write other bytes for the
+    same model: `envs_mjx.base.model_digest`), and moving its camera by a millimetre changes the digest."""
+    model = envs_mjx.make("ur5_reach", render=False).mj_model
+    buffer = np.zeros(mujoco.mj_sizeModel(model), np.uint8)
+    mujoco.mj_saveModel(model, None, buffer)
+    (tmp_path / "model.mjb").write_bytes(buffer.tobytes())
+    reloaded = mujoco.MjModel.from_binary_path(str(tmp_path / "model.mjb"))
+    assert base.model_digest(reloaded) == base.model_digest(model)
+    reloaded.cam_pos[0, 0] += 1e-3
+    assert base.model_digest(reloaded) != base.model_digest(model)
 
 
 def start(argv, log_dir, name) -> subprocess.Popen:
