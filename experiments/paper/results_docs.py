@@ -203,6 +203,26 @@ def lever_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     return report.markdown_table(head, rows)
 
 
+def strides_table(root: str, runs: Sequence[Sequence[str]]) -> str:
+    """Per [task and agent, strides, sweep path], the first row of each task and agent its reference: each seed's AUC
+    over the epochs all its rows reached, their mean, the difference from the reference's with Welch's 95 % interval,
+    the final success, and the seconds an epoch (`grid.sweep_seconds`: compilation excluded)."""
+    curves = [(name, strides, path, sweep_curve(os.path.join(root, path), strides)) for name, strides, path in runs]
+    common = {name: min(len(c.epoch) for n, *_, c in curves if n == name) for name, *_ in curves}
+    reference: dict[str, np.ndarray] = {}
+    rows = []
+    for name, strides, path, curve in curves:
+        auc = curve.success[:common[name]].mean(axis=0)
+        diff, low, high = stats.welch_interval(auc, reference.setdefault(name, auc))
+        versus = "reference" if auc is reference[name] else f"{diff:+.3f} {stats.interval_text(low, high)}"
+        epoch_s, _ = grid.sweep_seconds(grid.read_lines(os.path.join(root, path)))
+        rows.append([name, strides, str(common[name]), ", ".join(f"{v:.3f}" for v in auc), f"{auc.mean():.3f}",
+                     versus, report.final_cell(curve, LAST_N), f"{epoch_s:.1f}"])
+    head = ["task, agent", "strides", "epochs", "AUC per seed", "AUC", "difference [95 % interval]",
+            f"final (last {LAST_N})", "epoch (s)"]
+    return report.markdown_table(head, rows)
+
+
 def noise_table(root: str, runs: str) -> str:
     """Table II: per κ, each agent's final success over the paper's last N epochs beside the paper's."""
     found, _ = protocol.load_noise_curves(os.path.join(root, runs))
@@ -258,7 +278,7 @@ def ladder_table(root: str, runs: str) -> str:
 TABLES: dict[str, Callable[[str, object], str]] = {
     "epochs": epochs_table, "floors": floors_table, "curves": curves_table, "pilots": pilots_table,
     "lambda": lambda_table, "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table,
-    "transfer": transfer_table, "resumed": resumed_table, "ladder": ladder_table,
+    "transfer": transfer_table, "resumed": resumed_table, "ladder": ladder_table, "strides": strides_table,
 }
 
 

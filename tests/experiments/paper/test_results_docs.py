@@ -84,7 +84,7 @@ def _sweep(path, seeds_by_epoch):
     with open(path, "w", encoding="utf-8") as f:
         for epoch, seeds in enumerate(seeds_by_epoch, 1):
             f.write(json.dumps({"epoch": epoch, "env_steps_per_seed": 1000 * epoch, "process_seconds": epoch,
-                                "eval_success_seeds": seeds}) + "\n")
+                                "variant_seconds": epoch, "eval_success_seeds": seeds}) + "\n")
 
 
 def test_a_lever_keeps_parity_unless_its_interval_lies_below_zero(tmp_path):
@@ -99,6 +99,20 @@ def test_a_lever_keeps_parity_unless_its_interval_lies_below_zero(tmp_path):
     assert same.startswith("| task | same | 2 | 0.400, 0.500, 0.600 | 0.500, 0.500, 0.500 | +0.000 [")
     assert same.endswith("| yes |")
     assert "| -0.417 [" in worse and worse.endswith("| no |")
+
+
+def test_the_strides_table_compares_each_row_with_its_tasks_first(tmp_path):
+    """`strides` table: AUC per seed over the epochs every row of a task reached, the first row of a task its
+    reference, the others its difference with an interval, and the seconds an epoch from `process_seconds`."""
+    _sweep(tmp_path / "a.jsonl", [[0.2, 0.3, 0.4], [0.6, 0.7, 0.8], [1.0, 1.0, 1.0]])
+    _sweep(tmp_path / "b.jsonl", [[0.0, 0.1, 0.0], [0.1, 0.2, 0.1]])
+    _sweep(tmp_path / "c.jsonl", [[0.5, 0.5, 0.5], [0.5, 0.5, 0.5], [0.5, 0.5, 0.5]])
+    table = results_docs.strides_table(str(tmp_path), [["task", "3,2,2,1", "a.jsonl"], ["task", "2,2,1,1", "b.jsonl"],
+                                                       ["other", "3,2,2,1", "c.jsonl"]])
+    a, b, c = table.splitlines()[2:]
+    assert a.startswith("| task | 3,2,2,1 | 2 | 0.400, 0.500, 0.600 | 0.500 | reference |") and a.endswith("| 1.0 |")
+    assert b.startswith("| task | 2,2,1,1 | 2 | 0.050, 0.150, 0.050 | 0.083 | -0.417 [")
+    assert c.startswith("| other | 3,2,2,1 | 3 |") and "| reference |" in c
 
 
 def test_the_curves_table_marks_an_agent_not_run_on_a_task_and_a_stale_run(tmp_path):
