@@ -206,7 +206,7 @@ def lever_table(root: str, runs: Sequence[Sequence[str]]) -> str:
 def strides_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     """Per [task and agent, strides, sweep path], the first row of each task and agent its reference: each seed's AUC
     over the epochs all its rows reached, their mean, the difference from the reference's with Welch's 95 % interval,
-    the final success, and the seconds an epoch (`grid.sweep_seconds`: compilation excluded)."""
+    the final success, and the epoch's wall time (`grid.sweep_seconds`, compilation excluded)."""
     curves = [(name, strides, path, sweep_curve(os.path.join(root, path), strides)) for name, strides, path in runs]
     common = {name: min(len(c.epoch) for n, *_, c in curves if n == name) for name, *_ in curves}
     reference: dict[str, np.ndarray] = {}
