@@ -440,9 +440,12 @@ def test_cells_asking_for_what_no_node_has_are_refused(fake_ray, tmp_path, gpus,
                           str(tmp_path))
 
 
-GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", "300", "--ray",
-        "--progress-every", "1", "--quiet", "--num-envs", "4", "--cycles-per-epoch", "2", "--updates-per-cycle", "2",
-        "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--checkpoint-every", "100"]
+# epochs of about 20 ms: enough of them that the cell is still training once the sockets are read (a second or more)
+LONG_EPOCHS = 1000
+GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", str(LONG_EPOCHS),
+        "--ray", "--progress-every", "1", "--quiet", "--num-envs", "4", "--cycles-per-epoch", "2",
+        "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4",
+        "--checkpoint-every", "100"]
 LOOPBACK = ("127.0.0.1", "::ffff:127.0.0.1", "::1")
 
 
@@ -461,7 +464,7 @@ def listening(pid: int) -> list[tuple[str, str]]:
 
 @pytest.mark.slow
 def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_resumes(tmp_path):
-    """`python -m experiments.paper.curves --ray` of one 300-epoch cell: while it trains, every socket its local Ray
+    """`python -m experiments.paper.curves --ray` of one long cell: while it trains, every socket its local Ray
     listens on is on loopback; SIGINT to the grid's process once epoch 3 is written stops the cell with a checkpoint
     at its last epoch and exits 130 with one line; the same command resumes it, and the run ends with every epoch's
     row once, its replay buffer restored."""
@@ -485,7 +488,8 @@ def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_r
         "interrupted: the cells are stopped, each at its latest checkpoint; run the same command again to resume them"
     ] and "Traceback" not in err, err
     stopped = checkpoint.latest_step(str(run_dir / "checkpoints"))
-    assert 3 <= stopped < 300 and epochs(run_dir)[-1] == stopped  # saved after the epoch in flight
+    assert 3 <= stopped < LONG_EPOCHS and epochs(run_dir)[-1] == stopped  # saved after the epoch in flight
     again = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
-    assert epochs(run_dir) == list(range(1, 301)) and grid.loaded(str(run_dir))["config"]["fresh_buffer_epochs"] == []
+    assert epochs(run_dir) == list(range(1, LONG_EPOCHS + 1))
+    assert grid.loaded(str(run_dir))["config"]["fresh_buffer_epochs"] == []
