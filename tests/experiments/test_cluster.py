@@ -440,7 +440,7 @@ def test_cells_asking_for_what_no_node_has_are_refused(fake_ray, tmp_path, gpus,
                           str(tmp_path))
 
 
-# epochs of about 20 ms: enough of them that the cell is still training once the sockets are read (a second or more)
+# epochs of about 20 ms: enough of them that the cell still trains once the sockets are read
 LONG_EPOCHS = 1000
 GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", str(LONG_EPOCHS),
         "--ray", "--progress-every", "1", "--quiet", "--num-envs", "4", "--cycles-per-epoch", "2",
@@ -450,15 +450,17 @@ LOOPBACK = ("127.0.0.1", "::ffff:127.0.0.1", "::1")
 
 
 def listening(pid: int) -> list[tuple[str, str]]:
-    """(process name, address) of every socket that the process `pid` and its descendants listen on."""
+    """(process name, address) of every socket that the process `pid` and its descendants listen on: one scan of the
+    system's sockets (a scan per process takes seconds under load, while the cell trains on)."""
     import psutil  # Ray installs it
 
-    found = []
     root = psutil.Process(pid)
-    for process in [root, *root.children(recursive=True)]:
-        with contextlib.suppress(psutil.Error):
-            found += [(process.name(), c.laddr.ip) for c in process.net_connections(kind="inet")
-                      if c.status == psutil.CONN_LISTEN]
+    processes = {process.pid: process for process in [root, *root.children(recursive=True)]}
+    found = []
+    for connection in psutil.net_connections(kind="inet"):
+        if connection.pid in processes and connection.status == psutil.CONN_LISTEN:
+            with contextlib.suppress(psutil.Error):
+                found.append((processes[connection.pid].name(), connection.laddr.ip))
     return found
 
 
@@ -477,6 +479,7 @@ def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_r
             assert time.time() < deadline and driver.poll() is None, driver.stderr.read()
             time.sleep(0.1)
         sockets = listening(driver.pid)
+        assert driver.poll() is None, "the cell ended before the test could stop it"
         driver.send_signal(signal.SIGINT)
         err = driver.communicate(timeout=120)[1]
     finally:
