@@ -440,33 +440,28 @@ def test_cells_asking_for_what_no_node_has_are_refused(fake_ray, tmp_path, gpus,
                           str(tmp_path))
 
 
-# epochs of about 20 ms: enough of them that the cell still trains once the sockets are read
-LONG_EPOCHS = 1000
-GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", str(LONG_EPOCHS),
-        "--ray", "--progress-every", "1", "--quiet", "--num-envs", "4", "--cycles-per-epoch", "2",
-        "--updates-per-cycle", "2", "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4",
-        "--checkpoint-every", "100"]
+GRID = ["--tasks", "planar_reach", "--agents", "proprio_baseline", "--seeds", "1", "--epochs", "300", "--ray",
+        "--progress-every", "1", "--quiet", "--num-envs", "4", "--cycles-per-epoch", "2", "--updates-per-cycle", "2",
+        "--batch-size", "8", "--buffer-episodes", "8", "--eval-envs", "4", "--checkpoint-every", "100"]
 LOOPBACK = ("127.0.0.1", "::ffff:127.0.0.1", "::1")
 
 
 def listening(pid: int) -> list[tuple[str, str]]:
-    """(process name, address) of every socket that the process `pid` and its descendants listen on: one scan of the
-    system's sockets (a scan per process takes seconds under load, while the cell trains on)."""
+    """(process name, address) of every socket that the process `pid` and its descendants listen on."""
     import psutil  # Ray installs it
 
-    root = psutil.Process(pid)
-    processes = {process.pid: process for process in [root, *root.children(recursive=True)]}
     found = []
-    for connection in psutil.net_connections(kind="inet"):
-        if connection.pid in processes and connection.status == psutil.CONN_LISTEN:
-            with contextlib.suppress(psutil.Error):
-                found.append((processes[connection.pid].name(), connection.laddr.ip))
+    root = psutil.Process(pid)
+    for process in [root, *root.children(recursive=True)]:
+        with contextlib.suppress(psutil.Error):
+            found += [(process.name(), c.laddr.ip) for c in process.net_connections(kind="inet")
+                      if c.status == psutil.CONN_LISTEN]
     return found
 
 
 @pytest.mark.slow
 def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_resumes(tmp_path):
-    """`python -m experiments.paper.curves --ray` of one long cell: while it trains, every socket its local Ray
+    """`python -m experiments.paper.curves --ray` of one 300-epoch cell: while it trains, every socket its local Ray
     listens on is on loopback; SIGINT to the grid's process once epoch 3 is written stops the cell with a checkpoint
     at its last epoch and exits 130 with one line; the same command resumes it, and the run ends with every epoch's
     row once, its replay buffer restored."""
@@ -479,7 +474,6 @@ def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_r
             assert time.time() < deadline and driver.poll() is None, driver.stderr.read()
             time.sleep(0.1)
         sockets = listening(driver.pid)
-        assert driver.poll() is None, "the cell ended before the test could stop it"
         driver.send_signal(signal.SIGINT)
         err = driver.communicate(timeout=120)[1]
     finally:
@@ -491,8 +485,7 @@ def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_r
         "interrupted: the cells are stopped, each at its latest checkpoint; run the same command again to resume them"
     ] and "Traceback" not in err, err
     stopped = checkpoint.latest_step(str(run_dir / "checkpoints"))
-    assert 3 <= stopped < LONG_EPOCHS and epochs(run_dir)[-1] == stopped  # saved after the epoch in flight
+    assert 3 <= stopped < 300 and epochs(run_dir)[-1] == stopped  # saved after the epoch in flight
     again = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr
-    assert epochs(run_dir) == list(range(1, LONG_EPOCHS + 1))
-    assert grid.loaded(str(run_dir))["config"]["fresh_buffer_epochs"] == []
+    assert epochs(run_dir) == list(range(1, 301)) and grid.loaded(str(run_dir))["config"]["fresh_buffer_epochs"] == []
