@@ -177,12 +177,17 @@ def lift_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     return report.markdown_table(head, rows)
 
 
+def common_aucs(curves: Sequence[tuple[str, report.Curve]]) -> list[tuple[int, np.ndarray]]:
+    """Per (group, curve): the epochs every curve of its group reached, and each seed's AUC over them."""
+    common = {group: min(len(c.epoch) for g, c in curves if g == group) for group, _ in curves}
+    return [(common[group], c.success[:common[group]].mean(axis=0)) for group, c in curves]
+
+
 def parity_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     """Per [task and agent, convs, sweep path]: each seed's AUC over the epochs every sweep of its task reached."""
-    curves = [(task, convs, sweep_curve(os.path.join(root, path), convs)) for task, convs, path in runs]
-    common = {task: min(len(c.epoch) for t, _, c in curves if t == task) for task, _, _ in curves}
-    rows = [[task, convs, str(common[task]), ", ".join(f"{v:.3f}" for v in c.success[:common[task]].mean(axis=0)),
-             f"{c.success[:common[task]].mean():.3f}"] for task, convs, c in curves]
+    curves = [(task, sweep_curve(os.path.join(root, path), convs)) for task, convs, path in runs]
+    rows = [[task, convs, str(n), ", ".join(f"{v:.3f}" for v in auc), f"{auc.mean():.3f}"]
+            for (task, convs, _), (n, auc) in zip(runs, common_aucs(curves))]
     return report.markdown_table(["task, agent", "convs", "epochs", "AUC per seed", "mean"], rows)
 
 
@@ -205,19 +210,21 @@ def lever_table(root: str, runs: Sequence[Sequence[str]]) -> str:
 
 def strides_table(root: str, runs: Sequence[Sequence[str]]) -> str:
     """Per [task and agent, strides, sweep path], the first row of each task and agent its reference: each seed's AUC
-    over the epochs all its rows reached, their mean, the difference from the reference's with Welch's 95 % interval,
-    the final success, and the epoch's wall time (`grid.sweep_seconds`, compilation excluded)."""
-    curves = [(name, strides, path, sweep_curve(os.path.join(root, path), strides)) for name, strides, path in runs]
-    common = {name: min(len(c.epoch) for n, *_, c in curves if n == name) for name, *_ in curves}
+    over the epochs all its rows reached (`common_aucs`), their mean, the difference from the reference's with
+    Welch's 95 % interval, the final success, and the epoch's wall time (`grid.sweep_seconds`, compilation
+    excluded)."""
+    curves = [(name, sweep_curve(os.path.join(root, path), strides)) for name, strides, path in runs]
     reference: dict[str, np.ndarray] = {}
     rows = []
-    for name, strides, path, curve in curves:
-        auc = curve.success[:common[name]].mean(axis=0)
-        diff, low, high = stats.welch_interval(auc, reference.setdefault(name, auc))
-        versus = "reference" if auc is reference[name] else f"{diff:+.3f} {stats.interval_text(low, high)}"
+    for (name, strides, path), (_, curve), (n, auc) in zip(runs, curves, common_aucs(curves)):
+        if name in reference:
+            diff, low, high = stats.welch_interval(auc, reference[name])
+            versus = f"{diff:+.3f} {stats.interval_text(low, high)}"
+        else:
+            reference[name], versus = auc, "reference"
         epoch_s, _ = grid.sweep_seconds(grid.read_lines(os.path.join(root, path)))
-        rows.append([name, strides, str(common[name]), ", ".join(f"{v:.3f}" for v in auc), f"{auc.mean():.3f}",
-                     versus, report.final_cell(curve, LAST_N), f"{epoch_s:.1f}"])
+        rows.append([name, strides, str(n), ", ".join(f"{v:.3f}" for v in auc), f"{auc.mean():.3f}", versus,
+                     report.final_cell(curve, LAST_N), f"{epoch_s:.1f}"])
     head = ["task, agent", "strides", "epochs", "AUC per seed", "AUC", "difference [95 % interval]",
             f"final (last {LAST_N})", "epoch (s)"]
     return report.markdown_table(head, rows)
