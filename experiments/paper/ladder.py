@@ -5,8 +5,9 @@ and so what the visual agents' encoder fails to extract.
         [--out results/ladder] [--dry-run | --report] [--no-probe] [--probe-episodes 200] [--last-n 10]
         [--ray --gpus-per-cell 0.5 ...] [any learner or network option of experiments.run]
 
-Rungs (`RUNGS`), each two cells, a baseline (DDPG + HER) and a BidAL agent, `--seeds` seeds each at nicol_slide's
-budget (`protocol.paper_epochs`, or `--epochs`), in OUT/<rung>/<agent>:
+Rungs (`RUNGS`), each two cells, a baseline (DDPG + HER) and a BidAL agent at nicol_slide's budget
+(`protocol.paper_epochs`, or `--epochs`), in OUT/<rung>/<agent>; each cell `--seeds` seeds, else its rung's (`Rung.seeds`:
+5 for the image rung, whose cells are also the visual agents' 5-seed pilot on the task, and 3 for the others):
 
 - `image`: visual_baseline and visual_bidal on nicol_slide, as they are (the image alone);
 - `ee`: multimodal_baseline and multimodal_bidal on nicol_slide_ee, whose proprio keeps only the hand's grasp point
@@ -62,7 +63,8 @@ from experiments.paper.protocol import DEFAULT_SEED, paper_epochs
 from experiments.paper.rungs import (
     ABOUT,
     DEFAULT_OUT,
-    DEFAULT_SEEDS,
+    PILOT_SEEDS,
+    RUNG_SEEDS,
     LAST_N,
     MULTIMODAL,
     NOT_RUN,
@@ -89,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--agents", default=",".join(dict.fromkeys(VISUAL + MULTIMODAL)),
                         help="comma list of the agents to train of the chosen rungs (default all), e.g. one column, or "
                         "one agent a process so that two processes share a GPU")
-    parser.add_argument("--seeds", type=int, default=DEFAULT_SEEDS, help="seeds of every cell, vmapped as one program")
+    parser.add_argument("--seeds", type=int, default=None, help="seeds of every cell, vmapped as one program (default "
+                        f"each rung's: {PILOT_SEEDS} for the image rung, {RUNG_SEEDS} for the others)")
     parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help="first random seed of every run")
     parser.add_argument("--epochs", type=int, default=None,
                         help=f"epochs of every run (default {TASK}'s budget, {paper_epochs()[TASK]})")
@@ -168,7 +171,8 @@ def joined(previous: str | None, now: str) -> str:
 def section(previous: dict | None, runs: dict[str, dict], command: str | None) -> dict:
     """The ladder's figures.json section: the previous record (none while its date is `NOT_RUN`) with `command` (this
     invocation's; None when it trained and probed nothing), today's date and this commit added; the machines of the
-    runs (`machines`), `ABOUT`, and the figure where a run has epochs."""
+    runs (`machines`), `ABOUT`, the figure where a run has epochs, and the previous record of the runs that shared a
+    GPU ("gpu_sharing", written by whoever ran them: `report.gpu_sharing`), which no run folder records."""
     previous = previous if previous and previous.get("date", NOT_RUN) != NOT_RUN else {}
     record = {key: previous.get(key) for key in ("command", "date", "commit")}
     if command is not None:
@@ -178,7 +182,8 @@ def section(previous: dict | None, runs: dict[str, dict], command: str | None) -
     return {"part": "Learning (paper Fig. 4)", "title": "A ladder for the pixel agents", "about": ABOUT,
             "command": record["command"] or PROG, "machine": machines(runs), "date": record["date"] or NOT_RUN,
             "commit": record["commit"] or NOT_RUN, "table": "ladder", "runs": "ladder",
-            **({"figure": "curves.png"} if runs else {})}
+            **({"figure": "curves.png"} if runs else {}),
+            **({"gpu_sharing": previous["gpu_sharing"]} if previous.get("gpu_sharing") else {})}
 
 
 def read_section(path: str) -> dict | None:

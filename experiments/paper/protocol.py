@@ -140,9 +140,10 @@ def eval_episodes(run: dict) -> int:
 
 def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
     """"k/S above its floor": how many of the run's seeds are clearly above its task's floor over all goals
-    (`report.seeds_above` of its eval success); "" where results/floors lacks the task."""
-    task = run["env"] if run["env"] in floors else run["env"].removesuffix("_reduced")
-    if "all" not in floors.get(task, {}):
+    (`report.seeds_above` of its eval success), a labelled variant's the floor of the task it derives from
+    (`envs_mjx.lineage`); "" where results/floors lacks the task."""
+    task = next((name for name in envs_mjx.lineage(run["env"]) if "all" in floors.get(name, {})), None)
+    if task is None:
         return ""
     above = report.seeds_above(run["success"], eval_episodes(run), floors[task]["all"].value, last_n)
     return f"{int(above.sum())}/{above.size} above its floor"

@@ -12,30 +12,34 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from experiments import report
-from experiments.paper import grid
+from experiments.paper import grid, protocol
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import DEFAULT_SEED, paper_epochs
 
 TASK = "nicol_slide"
 DEFAULT_OUT = os.path.join("results", "ladder")
-DEFAULT_SEEDS = 5  # the image rung is also the visual agents' 5-seed pilot on the task
+# seeds a cell: the image rung's cells are also the visual agents' 5-seed pilot on the task (the grid's seeds a
+# cell); the rungs above them ask only where their column's success lands, which 3 seeds place
+PILOT_SEEDS, RUNG_SEEDS = 5, 3
 LAST_N = 10
 CLOSE = 0.05  # a rung closes the gap when its final success is at least the top rung's less this
 PROBE_FILE = "probe.json"
 NOT_RUN = "not run"
 COLUMNS = ("baseline", "bidal")
 class Rung(NamedTuple):
-    """A rung: its folder name, env, the agents of its two columns (baseline, BidAL) and what they observe."""
+    """A rung: its folder name, env, the agents of its two columns (baseline, BidAL), what they observe and the
+    seeds of each of its cells."""
 
     name: str
     env: str
     agents: tuple[str, str]
     observes: str
+    seeds: int = RUNG_SEEDS
 
 
 VISUAL, MULTIMODAL = ("visual_baseline", "visual_bidal"), ("multimodal_baseline", "multimodal_bidal")
 RUNGS = (
-    Rung("image", TASK, VISUAL, "image"),
+    Rung("image", TASK, VISUAL, "image", PILOT_SEEDS),
     Rung("ee", "nicol_slide_ee", MULTIMODAL, "image + ee_pos"),
     Rung("ee_obj", "nicol_slide_ee_obj", MULTIMODAL, "image + ee_pos + obj_pos"),
     Rung("proprio", TASK, MULTIMODAL, "image + all proprio (the multimodal agents)"),
@@ -44,17 +48,20 @@ TOP = RUNGS[-1]
 ABOUT = (f"What the pixel agents lack on {TASK}: the baseline (DDPG + HER) and BidAL agents with the image alone (the "
          "visual agents), then with the hand's position `ee_pos` beside it (env nicol_slide_ee, through the multimodal "
          "encoder), then with the cube's position `obj_pos` too (nicol_slide_ee_obj), then with all proprio (the "
-         f"multimodal agents); {DEFAULT_SEEDS} seeds a cell at the task's budget. Cells: final / AUC (each seed's "
+         f"multimodal agents); at the task's budget, {PILOT_SEEDS} seeds a cell of the image rung (the visual agents' "
+         f"pilot on the task) and {RUNG_SEEDS} of the others. Cells: final / AUC (each seed's "
          f"final). A rung closes the gap when its final is within {CLOSE} of the top rung's. Then a linear probe of "
          "the trained, frozen encoders (ridge regression from φ(s) to the true positions on held-out frames of "
          "scripted episodes), against the same architecture randomly initialised. results/ladder/table.md has the "
          "probe of every cell, of φ and of the vision branch alone.")
 
 
-def ladder_arms(rungs: Sequence[Rung], seeds: int, seed: int, epochs: int | None, extra: dict[str, Any],
+def ladder_arms(rungs: Sequence[Rung], seeds: int | None, seed: int, epochs: int | None, extra: dict[str, Any],
                 out: str) -> list[Arm]:
-    """The ladder's cells in OUT/<rung>/<agent>, rung by rung, each `epochs` or else nicol_slide's budget."""
-    return [Arm(f"{rung.name}/{agent}", {"env": rung.env, "agent": agent, "seeds": seeds, "seed": seed, **extra,
+    """The ladder's cells in OUT/<rung>/<agent>, rung by rung, each `seeds` seeds or else its rung's, and `epochs`
+    or else nicol_slide's budget."""
+    return [Arm(f"{rung.name}/{agent}", {"env": rung.env, "agent": agent, "seeds": rung.seeds if seeds is None else seeds, "seed": seed,
+                                         **extra,
                                          "epochs": epochs or paper_epochs()[TASK],
                                          "run_dir": os.path.join(out, rung.name, agent)})
             for rung in rungs for agent in rung.agents]
@@ -116,28 +123,33 @@ def finals(run: dict, last_n: int) -> np.ndarray:
     return run["success"][-last_n:].mean(axis=0)
 
 
-def cell(arm: Arm, run: dict | None, last_n: int, stale: bool) -> str:
-    """A cell: "final ± std / AUC (each seed's final)", how far an unfinished run got, † when stale; `NOT_RUN`."""
+def cell(arm: Arm, run: dict | None, last_n: int, stale: bool, floors: report.Floors) -> str:
+    """A cell: "final ± std / AUC (each seed's final), k/S above its floor" (`protocol.above_floor`), how far an
+    unfinished run got, † when stale; `NOT_RUN`."""
     if run is None:
         return NOT_RUN
     curve = report.curves([run], labels={run["dir"]: arm.name})[0]
     done = int(run["epoch"][-1])
     progress = "" if done >= arm.epochs else f", epoch {done} of {arm.epochs}"
     per_seed = ", ".join(f"{v:.3f}" for v in finals(run, last_n))
-    return (f"{report.final_cell(curve, last_n)} / {report.normalized_auc(curve):.3f} ({per_seed}){progress}"
-            + (grid.STALE if stale else ""))
+    above = protocol.above_floor(run, floors, last_n)
+    return (f"{report.final_cell(curve, last_n)} / {report.normalized_auc(curve):.3f} ({per_seed})"
+            f"{', ' + above if above else ''}{progress}" + (grid.STALE if stale else ""))
 
 
 def success_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Sequence[str]) -> str:
-    """Markdown, a rung a row: what its agents observe, its env, and each column's cell (`cell`)."""
+    """Markdown, a rung a row: what its agents observe, its env, the task's floor (results/floors: every rung is
+    nicol_slide's task) and each column's cell (`cell`)."""
+    floors = report.load_floors()
     by_name = {arm.name: arm for arm in arms}
     rows = []
     for rung in RUNGS:
         cells = [by_name[f"{rung.name}/{agent}"] for agent in rung.agents if f"{rung.name}/{agent}" in by_name]
         if cells:
-            rows.append([rung.observes, rung.env, *(
-                f"{arm.given['agent']}: {cell(arm, runs.get(arm.name), last_n, arm.name in stale)}" for arm in cells)])
-    head = ["input", "env", *(f"{column}: final / AUC (per seed)" for column in COLUMNS)]
+            rows.append([rung.observes, rung.env, report.floor_value(floors, TASK), *(
+                f"{arm.given['agent']}: {cell(arm, runs.get(arm.name), last_n, arm.name in stale, floors)}"
+                for arm in cells)])
+    head = ["input", "env", "floor", *(f"{column}: final / AUC (per seed)" for column in COLUMNS)]
     return report.markdown_table(head, rows)
 
 
@@ -187,8 +199,8 @@ def loaded_runs(arms: Sequence[Arm]) -> dict[str, dict]:
 
 def docs_table(out: str) -> str:
     """docs/results.md's ladder section (`results_docs`): the success table of the runs in `out` (the default cells:
-    `DEFAULT_SEEDS` seeds at the budget; stale runs marked), the gap line and the probe line."""
-    arms = ladder_arms(RUNGS, DEFAULT_SEEDS, DEFAULT_SEED, None, {}, out)
+    each rung's seeds at the budget; stale runs marked), the gap line and the probe line."""
+    arms = ladder_arms(RUNGS, None, DEFAULT_SEED, None, {}, out)
     runs = loaded_runs(arms)
     stale = grid.stale_runs(arms, runs, grid.physics_today({arm.given["env"] for arm in arms})) if runs else []
     lines = f"{gap_line(arms, runs, LAST_N)} {probe_line(read_probes(out))}"
@@ -203,7 +215,10 @@ def table_text(arms: Sequence[Arm], runs: dict[str, dict], probes: dict, last_n:
         f"# The pixel agents' ladder on {TASK}",
         "",
         f"Final: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs; AUC: the "
-        "mean of the seed-mean success over the epochs run; in brackets each seed's final.",
+        "mean of the seed-mean success over the epochs run; in brackets each seed's final. Floor: what a policy that "
+        f"does nothing scores on {TASK} (results/floors; every rung keeps the task's starts and goals); k/S above "
+        f"its floor: the seeds whose successes in the last {last_n} epochs' eval episodes are clearly above it (a "
+        f"one-sided binomial test, Holm over the seeds, α = {report.ALPHA}).",
         "",
         success_table(arms, runs, last_n, stale),
         "",

@@ -54,6 +54,14 @@ def test_agents_choose_the_cells_of_the_chosen_rungs(tmp_path, no_nicol, capsys)
     assert [line.split(":")[0] for line in lines[1:3]] == ["image/visual_bidal", "ee/multimodal_bidal"]
 
 
+def test_each_rung_keeps_its_seeds_unless_seeds_are_given(tmp_path, no_nicol, capsys):
+    argv = ["--dry-run", "--rungs", "image,ee", "--agents", "visual_bidal,multimodal_bidal"]
+    assert ladder.main([*argv, "--out", str(tmp_path / "out")]) == 0
+    lines = capsys.readouterr().out.splitlines()[1:3]
+    assert "nicol_slide visual_bidal, 5 seed(s)" in lines[0] and "nicol_slide_ee multimodal_bidal, 3 seed(s)" in lines[1]
+    assert [arm.given["seeds"] for arm in rungs.ladder_arms(rungs.RUNGS, 4, 0, None, {}, "out")] == [4] * 8
+
+
 @pytest.mark.parametrize("argv, expected", [
     (["--rungs", "image,nope"], "error: --rungs image,nope: unknown rung 'nope'; allowed: image, ee, ee_obj, proprio"),
     (["--agents", "visual_bidal,x"], "error: --agents visual_bidal,x: unknown agent 'x'; allowed: visual_baseline, "
@@ -76,8 +84,11 @@ def test_the_table_computes_which_rung_closes_the_gap_and_shows_the_probe(tmp_pa
     assert ladder.main(["--report", *EXPERIMENT, "--out", str(out)]) == 0
     assert no_nicol == []  # nothing trained
     table = (out / "table.md").read_text()
-    assert ("| image | nicol_slide | visual_baseline: 0.050 ± 0.010 / 0.050 (0.040, 0.060) | "
-            "visual_bidal: 0.050 ± 0.010 / 0.050 (0.040, 0.060) |") in table
+    # the floor is nicol_slide's on every rung (results/floors): of 2 × 128 eval episodes, 0.04 is not clearly
+    # above 0.031 and 0.06 is
+    assert ("| image | nicol_slide | 0.031 | visual_baseline: 0.050 ± 0.010 / 0.050 (0.040, 0.060), 1/2 above its "
+            "floor | visual_bidal: 0.050 ± 0.010 / 0.050 (0.040, 0.060), 1/2 above its floor |") in table
+    assert "| nicol_slide_ee_obj | 0.031 | multimodal_baseline: 0.850 ± 0.010 / 0.583 (0.840, 0.860), 2/2 above" in table
     assert ("Closes the gap (final within 0.05 of the proprio rung's): baseline: no rung below proprio closes it "
             "(0.970 to reach); bidal: image + ee_pos + obj_pos closes it (multimodal_bidal 0.950 against 0.960)."
             ) in table
@@ -103,7 +114,7 @@ def test_without_the_top_rung_no_gap_is_claimed_and_missing_cells_say_not_run(tm
     fake_ladder(out, ladder.RUNGS[:2])
     assert ladder.main(["--report", *EXPERIMENT, "--out", str(out)]) == 0
     table = (out / "table.md").read_text()
-    assert ("| image + ee_pos + obj_pos | nicol_slide_ee_obj | multimodal_baseline: not run | "
+    assert ("| image + ee_pos + obj_pos | nicol_slide_ee_obj | 0.031 | multimodal_baseline: not run | "
             "multimodal_bidal: not run |") in table
     assert "baseline: not measured (proprio/multimodal_baseline, the level to reach, is not finished)" in table
     assert "Probe: not run." in table and "Missing: ee_obj/multimodal_baseline" in table
@@ -125,7 +136,9 @@ def test_the_record_adds_each_new_command_once():
     assert first["command"] == "a" and first["machine"] == ladder.NOT_RUN
     again = ladder.section(ladder.section(first, {}, "b"), {}, "a")
     assert again["command"] == "a; b" and again["date"] == first["date"] and again["commit"] == first["commit"]
-    assert ladder.section(again, {}, None)["command"] == "a; b"
+    assert ladder.section(again, {}, None)["command"] == "a; b" and "gpu_sharing" not in again
+    sharing = [{"runs": ["ladder/image/*"], "at_once": 2}]
+    assert ladder.section({**again, "gpu_sharing": sharing}, {}, "c")["gpu_sharing"] == sharing
 
 
 def test_an_axis_without_r2_reads_as_a_dash():
