@@ -6,8 +6,9 @@ and so what the visual agents' encoder fails to extract.
         [--ray --gpus-per-cell 0.5 ...] [any learner or network option of experiments.run]
 
 Rungs (`RUNGS`), each two cells, a baseline (DDPG + HER) and a BidAL agent at nicol_slide's budget
-(`protocol.paper_epochs`, or `--epochs`), in OUT/<rung>/<agent>; each cell `--seeds` seeds, else its rung's (`Rung.seeds`:
-5 for the image rung, whose cells are also the visual agents' 5-seed pilot on the task, and 3 for the others):
+(`protocol.paper_epochs`, or `--epochs`), in OUT/<rung>/<agent>; each cell `--seeds` seeds, else its rung's
+(`Rung.seeds`: 5 for the image rung, whose cells are also the visual agents' 5-seed pilot on the task, 3 for the
+others):
 
 - `image`: visual_baseline and visual_bidal on nicol_slide, as they are (the image alone);
 - `ee`: multimodal_baseline and multimodal_bidal on nicol_slide_ee, whose proprio keeps only the hand's grasp point
@@ -63,12 +64,12 @@ from experiments.paper.protocol import DEFAULT_SEED, paper_epochs
 from experiments.paper.rungs import (
     ABOUT,
     DEFAULT_OUT,
-    PILOT_SEEDS,
-    RUNG_SEEDS,
     LAST_N,
     MULTIMODAL,
     NOT_RUN,
+    PILOT_SEEDS,
     PROBE_FILE,
+    RUNG_SEEDS,
     RUNGS,
     TASK,
     VISUAL,

@@ -60,8 +60,8 @@ def ladder_arms(rungs: Sequence[Rung], seeds: int | None, seed: int, epochs: int
                 out: str) -> list[Arm]:
     """The ladder's cells in OUT/<rung>/<agent>, rung by rung, each `seeds` seeds or else its rung's, and `epochs`
     or else nicol_slide's budget."""
-    return [Arm(f"{rung.name}/{agent}", {"env": rung.env, "agent": agent, "seeds": rung.seeds if seeds is None else seeds, "seed": seed,
-                                         **extra,
+    return [Arm(f"{rung.name}/{agent}", {"env": rung.env, "agent": agent,
+                                         "seeds": rung.seeds if seeds is None else seeds, "seed": seed, **extra,
                                          "epochs": epochs or paper_epochs()[TASK],
                                          "run_dir": os.path.join(out, rung.name, agent)})
             for rung in rungs for agent in rung.agents]
