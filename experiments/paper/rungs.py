@@ -171,12 +171,14 @@ def gap_line(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
         measured = [(rung, f) for rung in RUNGS[:-1] if (f := final(rung)) is not None]
         closing = next(((rung, f) for rung, f in measured if f >= top - CLOSE), None)
         missing = [rung.name for rung in RUNGS[:-1] if final(rung) is None]
-        unmeasured = f" ({', '.join(missing)} not finished)" if missing else ""
         if closing:
             rung, f = closing
             parts.append(f"{column}: {rung.observes} closes it ({rung.agents[i]} {f:.3f} against {top:.3f})")
+        elif missing:  # a rung not finished may still close it
+            parts.append(f"{column}: not measured ({', '.join(missing)} not finished); no finished rung below "
+                         f"{TOP.name} closes it ({top:.3f} to reach)")
         else:
-            parts.append(f"{column}: no rung below {TOP.name} closes it ({top:.3f} to reach){unmeasured}")
+            parts.append(f"{column}: no rung below {TOP.name} closes it ({top:.3f} to reach)")
     return f"Closes the gap (final within {CLOSE} of the {TOP.name} rung's): " + "; ".join(parts) + "."
 
 

@@ -121,6 +121,14 @@ def test_without_the_top_rung_no_gap_is_claimed_and_missing_cells_say_not_run(tm
     assert "Probe: not run." in table and "Missing: ee_obj/multimodal_baseline" in table
 
 
+def test_a_gap_no_finished_rung_closes_is_not_measured_while_a_rung_below_is_missing(tmp_path, no_nicol):
+    out = tmp_path / "out"
+    fake_ladder(out, (ladder.RUNGS[0], ladder.RUNGS[-1]))
+    assert ladder.main(["--report", *EXPERIMENT, "--out", str(out)]) == 0
+    assert ("bidal: not measured (ee, ee_obj not finished); no finished rung below proprio closes it (0.960 to "
+            "reach).") in (out / "table.md").read_text()
+
+
 def test_training_records_its_command_date_and_commit(tmp_path, no_nicol):
     out = tmp_path / "out"
     argv = [*EXPERIMENT, "--rungs", "image", "--out", str(out)]
