@@ -101,3 +101,9 @@ def test_every_task_resolves_for_every_agent_and_names_a_section_of_the_docs():
         with open(os.path.join(REPO, path), encoding="utf-8") as f:
             headings = [line.lstrip("#").strip() for line in f if line.startswith("#")]
         assert anchor in [re.sub(r"[^\w\- ]", "", h.lower()).replace(" ", "-") for h in headings], name
+
+
+def test_a_variant_s_lineage_names_the_task_it_derives_from_and_a_task_only_itself():
+    assert envs_mjx.lineage("nicol_slide_ee_obj") == ("nicol_slide_ee_obj", "nicol_slide")
+    assert envs_mjx.lineage("nicol_lift_reduced") == ("nicol_lift_reduced", "nicol_lift")
+    assert [envs_mjx.lineage(name) for name in ("planar_reach", "nicol_lift")] == [("planar_reach",), ("nicol_lift",)]
