@@ -459,6 +459,14 @@ def listening(pid: int) -> list[tuple[str, str]]:
     return found
 
 
+def signal_masks(pid: int) -> str:
+    """A process's blocked, ignored and caught signals (/proc/PID/status, hexadecimal masks: SIGINT is bit 1), which a
+    child inherits across exec where blocked or ignored: what a driver that does not stop on SIGINT was given."""
+    with open(f"/proc/{pid}/status", encoding="utf-8") as f:
+        lines = [line.strip().replace("\t", " ") for line in f]
+    return " ".join(line for line in lines if line.startswith(("SigBlk", "SigIgn", "SigCgt")))
+
+
 @pytest.mark.slow
 def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_resumes(tmp_path):
     """`python -m experiments.paper.curves --ray` of one 300-epoch cell: while it trains, every socket its local Ray
@@ -474,12 +482,13 @@ def test_a_local_grid_listens_on_loopback_stops_on_ctrl_c_and_the_same_command_r
             assert time.time() < deadline and driver.poll() is None, driver.stderr.read()
             time.sleep(0.1)
         sockets = listening(driver.pid)
+        masks = signal_masks(driver.pid)
         driver.send_signal(signal.SIGINT)
         err = driver.communicate(timeout=120)[1]
     finally:
         driver.kill()
     assert "gcs_server" in [name for name, _ in sockets] and all(ip in LOOPBACK for _, ip in sockets), sockets
-    assert driver.returncode == 130, err
+    assert driver.returncode == 130, f"{masks} (this worker: {signal_masks(os.getpid())})\n{err}"
     own = [line for line in err.splitlines() if not line.startswith("\x1b") and not line.startswith("(")]
     assert [line for line in own if line.startswith(("interrupted", "error"))] == [
         "interrupted: the cells are stopped, each at its latest checkpoint; run the same command again to resume them"
