@@ -326,12 +326,15 @@ def timed_agent(task: str, agent: str, measured: Iterable[tuple[str, str]]) -> s
 
 def epoch_time(task: str, agent: str, folder: str = EPOCH_SWEEPS) -> EpochTime | None:
     """The measured epoch of `agent` on `task` (`measured_epochs` of `folder`, `timed_agent`); where that is not
-    measured (a new task; nicol_lift_reduced, nicol_lift's preset), the longest measured epoch of the same agent on
-    another task, else of any agent: an over-estimate, which `estimated_plan` names; None when nothing is measured."""
+    measured, the same agent's on the task a labelled variant derives from (`envs_mjx.lineage`: nicol_lift_reduced
+    as nicol_lift, nicol_slide_ee as nicol_slide: their physics, camera and presets); else (a new task) the longest
+    measured epoch of the same agent on another task, else of any agent: an over-estimate. `estimated_plan` names
+    both; None when nothing is measured."""
     measured = measured_epochs(folder)
+    for base in envs_mjx.lineage(task) if task in envs_mjx.names() else (task,):
+        if (base, timed := timed_agent(base, agent, measured)) in measured:
+            return EpochTime(*measured[base, timed], base)
     timed = timed_agent(task, agent, measured)
-    if (task, timed) in measured:
-        return EpochTime(*measured[task, timed], task)
     same = [key for key in measured if key[1] == timed] or list(measured)
     if not same:
         return None
@@ -402,10 +405,12 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
                      "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, "
                      "compilation included)")
     timed = {arm.given["env"]: epoch_time(arm.given["env"], arm.given["agent"]) for arm in arms}
-    borrowed = [f"{task} as {t.task}" for task, t in timed.items() if t is not None and t.task != task]
-    if borrowed:
-        lines.append(f"not measured in results/scaling/epochs, estimated as the longest measured epoch: "
-                     f"{', '.join(borrowed)}")
+    borrowed = {task: t.task for task, t in timed.items() if t is not None and t.task != task}
+    derived = [f"{task} as {base}" for task, base in borrowed.items() if base in envs_mjx.lineage(task)]
+    longest = [f"{task} as {base}" for task, base in borrowed.items() if base not in envs_mjx.lineage(task)]
+    for named, which in ((derived, "the task it derives from"), (longest, "the longest measured epoch")):
+        if named:
+            lines.append(f"not measured in results/scaling/epochs, estimated as {which}: {', '.join(named)}")
     done = [run for arm in arms if (run := loaded(arm.run_dir))]
     if done:
         held, summed = report.machine_time(done)

@@ -124,12 +124,17 @@ def test_each_agent_takes_its_stand_ins_sweep():
 
 def test_a_task_without_a_sweep_is_estimated_as_the_longest_measured_epoch_and_nothing_measured_as_unknown(
         tmp_path, monkeypatch):
-    """No KeyError for a task that results/ has not timed (nicol_lift_reduced, a new task): the longest measured
-    epoch of its stand-in agent; where results/ is missing, no estimate, and a cell is one block of all its seeds."""
+    """No KeyError for a task that results/ has not timed: a labelled variant (nicol_lift_reduced, nicol_slide_ee)
+    as its base task, a new task as the longest measured epoch of its stand-in agent; where results/ is missing, no
+    estimate, and a cell is one block of all its seeds."""
     longest = max(grid.epoch_time(task, "multimodal_bidal") for task in TASKS)
     assert longest.task == "nicol_lift"
-    assert grid.epoch_time("nicol_lift_reduced", "multimodal_bidal") == longest
     assert grid.epoch_time("unknown_task", "visual_baseline") == longest  # no baseline sweep of its own
+    # a labelled variant is timed as the task it derives from, with that task's stand-in agent
+    lift = grid.epoch_time("nicol_lift", "multimodal_bidal")
+    assert grid.epoch_time("nicol_lift_reduced", "multimodal_bidal") == lift
+    slide = grid.epoch_time("nicol_slide", "visual_baseline")
+    assert grid.epoch_time("nicol_slide_ee", "multimodal_baseline") == slide and slide.task == "nicol_slide"
     assert grid.epoch_time("nicol_lift", "proprio_baseline", str(tmp_path)) is None
     cell = next(a for a in _arms(["--seeds", "50"]) if a.name == "nicol_lift/visual_bidal")
     assert len(grid.blocks(cell)) > 1
