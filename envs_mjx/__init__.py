@@ -61,8 +61,9 @@ def task(name: str) -> Any:
 def lineage(name: str) -> tuple[str, ...]:
     """`name` and the envs its class derives from, nearest first: a labelled variant (nicol_slide_ee,
     nicol_lift_reduced) keeps its base task's dynamics, starts and goals, so the base's figures of the task (its
-    floor) are the variant's; (`name`,) for a registered factory."""
-    found = getattr(_registered(name), "__mro__", ())
+    floor, its measured epoch) are the variant's; (`name`,) for a registered factory and for a name the registry
+    lacks (a run of a task no longer registered), which derive from nothing."""
+    found = getattr(_registered(name), "__mro__", ()) if name in _REGISTRY else ()
     derived = (c.__dict__.get("name") for c in found)
     return tuple(dict.fromkeys([name, *(n for n in derived if n in _REGISTRY)]))
 

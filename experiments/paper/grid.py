@@ -331,7 +331,7 @@ def epoch_time(task: str, agent: str, folder: str = EPOCH_SWEEPS) -> EpochTime |
     measured epoch of the same agent on another task, else of any agent: an over-estimate. `estimated_plan` names
     both; None when nothing is measured."""
     measured = measured_epochs(folder)
-    for base in envs_mjx.lineage(task) if task in envs_mjx.names() else (task,):
+    for base in envs_mjx.lineage(task):
         if (base, timed := timed_agent(base, agent, measured)) in measured:
             return EpochTime(*measured[base, timed], base)
     timed = timed_agent(task, agent, measured)
@@ -405,12 +405,13 @@ def estimated_plan(arms: Sequence[Arm], envs: dict[str, Any], heading: str = "pl
                      "(an estimate from measured 5-seed programs of the default sizes, in proportion to the seeds, "
                      "compilation included)")
     timed = {arm.given["env"]: epoch_time(arm.given["env"], arm.given["agent"]) for arm in arms}
-    borrowed = {task: t.task for task, t in timed.items() if t is not None and t.task != task}
-    derived = [f"{task} as {base}" for task, base in borrowed.items() if base in envs_mjx.lineage(task)]
-    longest = [f"{task} as {base}" for task, base in borrowed.items() if base not in envs_mjx.lineage(task)]
-    for named, which in ((derived, "the task it derives from"), (longest, "the longest measured epoch")):
-        if named:
-            lines.append(f"not measured in results/scaling/epochs, estimated as {which}: {', '.join(named)}")
+    borrowed: dict[str, list[str]] = {"the task it derives from": [], "the longest measured epoch": []}
+    for task, t in timed.items():
+        if t is not None and t.task != task:
+            which = "the task it derives from" if t.task in envs_mjx.lineage(task) else "the longest measured epoch"
+            borrowed[which].append(f"{task} as {t.task}")
+    lines += [f"not measured in results/scaling/epochs, estimated as {which}: {', '.join(named)}"
+              for which, named in borrowed.items() if named]
     done = [run for arm in arms if (run := loaded(arm.run_dir))]
     if done:
         held, summed = report.machine_time(done)

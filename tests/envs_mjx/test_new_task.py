@@ -107,3 +107,4 @@ def test_a_variant_s_lineage_names_the_task_it_derives_from_and_a_task_only_itse
     assert envs_mjx.lineage("nicol_slide_ee_obj") == ("nicol_slide_ee_obj", "nicol_slide")
     assert envs_mjx.lineage("nicol_lift_reduced") == ("nicol_lift_reduced", "nicol_lift")
     assert [envs_mjx.lineage(name) for name in ("planar_reach", "nicol_lift")] == [("planar_reach",), ("nicol_lift",)]
+    assert envs_mjx.lineage("removed_task") == ("removed_task",)  # a run's task the registry no longer has
