@@ -12,12 +12,14 @@ compilation's seconds, XLA's cost estimate of one update (FLOPs and bytes access
 of all seeds (median of `--repeats` calls) and the speed-up over the first variant; `--profile DIR` also traces
 one warm call per variant and prints the kernels (device events) per update, the kernels' time per part of the
 update (each network's forward and backward pass, the optimiser, replay sampling: `tracing.component`) and the
-largest kernels.
+largest kernels; `--json FILE` writes each variant's row there (its milliseconds per update and, with `--profile`,
+each part's device milliseconds per update), which `experiments.bench.roofline` sets beside each part's floor.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import time
 
@@ -87,6 +89,13 @@ def measure(name: str, agent: str, seeds: int, updates: int, repeats: int, varia
     return row
 
 
+def per_update(parts: list[dict], updates: int) -> list[dict]:
+    """`by_component`'s rows of a traced call of `updates` updates, per update: milliseconds (as "seconds", the
+    unit `print_components` is told) and events."""
+    return [{**r, "seconds": 1e3 * r["seconds"] / updates, **{key: r[key] / updates for key in ("events", "inherited")}}
+            for r in parts]
+
+
 def kernels_per_update(trace: list[dict], updates: int) -> float | None:
     """Events of the busiest device stream of a traced call, per update (None without a device stream)."""
     streams = [r for r in trace if r["process"].startswith("/device:")]
@@ -103,6 +112,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--variant", nargs="+", default=["preset"],
                         help="k=v,net.k=v overrides of the preset, one per variant (as experiments.bench.sweep's)")
     parser.add_argument("--profile", default="", help="trace one warm call per variant into this folder")
+    parser.add_argument("--json", default="", help="write each variant's row here: ms per update, and with "
+                        "--profile each part's device ms per update")
     parser.add_argument("--depth", type=int, default=0, help="with --profile: the parts name the networks' "
                         "submodules this deep (2: the encoder's conv layers, Encoder/VisionBranch_0/PatchConv_1)")
     args = parser.parse_args(argv)
@@ -130,10 +141,14 @@ def main(argv: list[str] | None = None) -> None:
               f"| {rows[0]['ms'] / row['ms']:.2f}× | {'–' if kernels is None else f'{kernels:.0f}'} |")
     for row in filter(lambda row: row["parts"], rows):
         print(f"\n## {row['variant']}")
-        per_update = [{**r, "seconds": 1e3 * r["seconds"] / args.updates,
-                       **{key: r[key] / args.updates for key in ("events", "inherited")}} for r in row["parts"]]
-        print_components(per_update, row["ms"], "ms per update")
+        print_components(per_update(row["parts"], args.updates), row["ms"], "ms per update")
         print_summary([r for r in row["trace"] if r["process"].startswith("/device:")], 2)
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as f:
+            json.dump([{"env": args.env, "agent": args.agent, "seeds": args.seeds, "updates": args.updates,
+                        "variant": row["variant"], "device_kind": device.device_kind, "ms": row["ms"],
+                        "parts": [{"component": r["component"], "ms": r["seconds"], "events": r["events"]}
+                                  for r in per_update(row["parts"], args.updates)]} for row in rows], f, indent=1)
 
 
 if __name__ == "__main__":

@@ -30,6 +30,7 @@ import envs_mjx
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
+from experiments.bench import roofline
 from experiments.paper import grid, protocol, rungs
 
 PROG = "python -m experiments.paper.results_docs"
@@ -282,10 +283,24 @@ def ladder_table(root: str, runs: str) -> str:
     return rungs.docs_table(os.path.join(root, runs))
 
 
+def roofline_table(root: str, runs: Sequence[str]) -> str:
+    """[the counted floors (`experiments.bench.roofline --out`), the measured rows (`experiments.bench.updates
+    --json`), the measured row's variant]: each part of an update against its own floor (`roofline.parts_table`)."""
+    counted_path, measured_path, variant = runs
+    with open(os.path.join(root, counted_path), encoding="utf-8") as f:
+        counted = json.load(f)
+    with open(os.path.join(root, measured_path), encoding="utf-8") as f:
+        measured = [row for row in json.load(f) if row["variant"] == variant]
+    if not measured:
+        raise ValueError(f"{measured_path}: no row of variant {variant!r}")
+    return report.markdown_table(*roofline.parts_table(counted, measured[0]))
+
+
 TABLES: dict[str, Callable[[str, object], str]] = {
     "epochs": epochs_table, "floors": floors_table, "curves": curves_table, "pilots": pilots_table,
     "lambda": lambda_table, "lift": lift_table, "parity": parity_table, "levers": lever_table, "noise": noise_table,
     "transfer": transfer_table, "resumed": resumed_table, "ladder": ladder_table, "strides": strides_table,
+    "roofline": roofline_table,
 }
 
 
