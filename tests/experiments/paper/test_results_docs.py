@@ -131,3 +131,15 @@ def test_the_curves_table_marks_an_agent_not_run_on_a_task_and_a_stale_run(tmp_p
     assert proprio == "| proprio_baseline | 0.567 ± 0.100 (last 3) / 0.567† | 0.567 ± 0.100 (last 3) / 0.567† |"
     assert bidal == "| multimodal_bidal | — | 0.700 ± 0.000 (last 3) / 0.700 |"
     assert floor == "| floor: a policy that does nothing | not computed | not computed |"  # no tmp_path/floors
+
+
+def test_the_roofline_table_takes_the_measured_row_of_its_variant(tmp_path):
+    counted = {"parts": [{"part": "critic", "flops": {"f32": 494.7e6}, "bytes": 0}]}
+    row = {"variant": "b", "device_kind": "NVIDIA H200", "ms": 0.05, "parts": [{"component": "critic", "ms": 0.02}]}
+    (tmp_path / "floors.json").write_text(json.dumps(counted))
+    (tmp_path / "measured.json").write_text(json.dumps([{**row, "variant": "a", "ms": 9.0}, row]))
+    table = results_docs.roofline_table(str(tmp_path), ["floors.json", "measured.json", "b"])
+    assert "| critic | 0.49 | — | 1.0 | 0.0 | 20 | 20× |" in table
+    assert "| the update (wall time) |  |  | 1.0 | 0.0 | 50 | 50× |" in table
+    with pytest.raises(ValueError, match="measured.json: no row of variant 'c'"):
+        results_docs.roofline_table(str(tmp_path), ["floors.json", "measured.json", "c"])
