@@ -79,9 +79,11 @@ class Dot(NamedTuple):
 
 
 def part_of(component: str) -> str:
-    """`tracing.component`'s label -> a part of `PARTS` ("update: Critic backward" -> "critic")."""
+    """`tracing.component`'s label, at any depth, -> a part of `PARTS` ("update: Critic backward" and "update:
+    Critic/Dense_0 backward" -> "critic"); a label of no network is kept."""
     name = component.removeprefix("update: ")
-    network, _, direction = name.rpartition(" ")
+    path, _, direction = name.rpartition(" ")
+    network = path.split("/")[0]
     if network == "Encoder":
         return f"encoder {direction}"
     return {"Critic": "critic", "Actor": "actor", "ForwardModel": MODELS, "InverseModel": MODELS}.get(network, name)
@@ -118,9 +120,9 @@ def update_hlo(name: str, agent: str, variant: str = "preset") -> tuple[str, obj
 
 
 def frames_encoded(found: list[Dot]) -> int:
-    """Frames an update encodes: the rows of the encoder's first conv (0 without a vision branch)."""
-    first = [d.out[0] for d in found if d.part == "encoder forward" and "PatchConv_0/" in d.op_name]
-    return max(first, default=0)
+    """Frames an update encodes: the rows of the encoder's first conv, over its passes (0 without a vision
+    branch)."""
+    return sum(d.out[0] for d in found if d.part == "encoder forward" and "PatchConv_0/" in d.op_name)
 
 
 def floors(name: str, agent: str, seeds: int, variant: str = "preset") -> dict:

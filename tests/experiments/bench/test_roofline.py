@@ -70,6 +70,14 @@ def test_each_part_is_set_against_its_own_floor():
     assert rows[-1] == ["the update (wall time)", "", "", "1.0", "3.0", "1000", "333×"]
 
 
+@pytest.mark.parametrize("component, part", [("update: Encoder backward", "encoder backward"),
+                                             ("update: Encoder/VisionBranch_0/PatchConv_1 forward", "encoder forward"),
+                                             ("update: InverseModel/Dense_0 backward", roofline.MODELS),
+                                             ("update: optimiser (Adam)", "optimiser (Adam)"), ("camera", "camera")])
+def test_a_profile_label_at_any_depth_names_its_part(component, part):
+    assert roofline.part_of(component) == part
+
+
 def test_an_unknown_chip_is_one_line():
     with pytest.raises(ValueError, match="'Tesla T4': no peaks known; one of H100, H200 is allowed"):
         roofline.chip_of("Tesla T4")
