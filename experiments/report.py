@@ -112,10 +112,12 @@ def block_dirs(run_dir: str) -> list[str]:
     return [os.path.join(run_dir, name) for _, name in sorted(found)]
 
 
-def merge_blocks(run_dir: str, blocks: Sequence[dict]) -> dict:
+def merge_blocks(run_dir: str, blocks: Sequence[dict], planned: int = 0) -> dict:
     """One run of the seeds of `blocks` (`load_run`s of one cell, in seed order) over the epochs they all reached:
     its seeds side by side, its times summed over the blocks (GPU time), its config the first block's with their
-    seeds counted together. RunError where the blocks are not of one task, agent and epoch size."""
+    seeds counted together, and "planned_seeds" the cell's seeds by its block folders (`planned`, at least those
+    merged), so that a block without epochs yet leaves the run short rather than smaller. RunError where the blocks
+    are not of one task, agent and epoch size."""
     first = blocks[0]
     for block in blocks[1:]:
         if (block["env"], block["agent"]) != (first["env"], first["agent"]):
@@ -137,7 +139,8 @@ def merge_blocks(run_dir: str, blocks: Sequence[dict]) -> dict:
     summed = functools.partial(np.sum, axis=0)
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": first["env"],
-        "agent": first["agent"], "seeds": seeds, "epoch": first["epoch"][:epochs], "env_steps": steps,
+        "agent": first["agent"], "seeds": seeds, "planned_seeds": max(planned, seeds), "epoch": first["epoch"][:epochs],
+        "env_steps": steps,
         "wall_time": joined("wall_time", summed), WITH_COMPILE: joined(WITH_COMPILE, summed),
         "success": joined("success", functools.partial(np.concatenate, axis=1)),
         "success_air": joined("success_air", functools.partial(np.concatenate, axis=1)),
@@ -148,7 +151,8 @@ def load_run(run_dir: str) -> dict:
     """One run: its config, env, agent, seeds and per-epoch arrays.
 
     Keys: "dir", "name" (basename), "config" (the parsed config.json; `physics_of` reads its physics), "env", "agent",
-    "seeds", "epoch" [E], "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
+    "seeds", "planned_seeds" (more than "seeds" where blocks of a cell's seeds have no epochs yet), "epoch" [E],
+    "env_steps" [E] (per seed: env_steps_total / seeds), "wall_time" [E],
     "wall_time_with_compile" [E] (None where metrics.csv predates it), "success" [E, S] (eval
     success of each seed), "success_air" [E, S] (each seed's success over air goals, `AIR`; None for a task
     without them or a run older than that column). Raises NotARun (a folder without a run with epochs yet) or
@@ -159,7 +163,7 @@ def load_run(run_dir: str) -> dict:
         found = [run for run in map(loaded, blocks) if run is not None]
         if not found:
             raise NotARun(f"{run_dir}: no block of its seeds has epochs yet")
-        return merge_blocks(run_dir, found)
+        return merge_blocks(run_dir, found, max(int(BLOCK.match(os.path.basename(b)).group(2)) + 1 for b in blocks))
     config, rows = _read(run_dir, config_path, metrics_path)
     try:
         env, agent, seeds = config["run"]["env"], config["run"]["agent"], int(config["run"]["seeds"])
@@ -182,7 +186,7 @@ def load_run(run_dir: str) -> dict:
         raise RunError(str(err)) from None
     return {
         "dir": run_dir, "name": os.path.basename(os.path.normpath(run_dir)), "config": config, "env": env,
-        "agent": agent, "seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
+        "agent": agent, "seeds": seeds, "planned_seeds": seeds, "epoch": epoch, "env_steps": steps, "wall_time": wall,
         WITH_COMPILE: with_compile, "success": success, "success_air": air,
     }
 
@@ -225,6 +229,12 @@ class Curve:
     @property
     def mean(self) -> np.ndarray:
         return self.success.mean(axis=1)
+
+    def first(self, epochs: int) -> "Curve":
+        """The curve over its first `epochs` epochs (all of them where it has fewer): arms compared over the same
+        budget."""
+        return dataclasses.replace(self, epoch=self.epoch[:epochs], env_steps=self.env_steps[:epochs],
+                                   wall_time=self.wall_time[:epochs], success=self.success[:epochs])
 
     @property
     def std(self) -> np.ndarray:
@@ -498,18 +508,27 @@ def machine_time(runs: Sequence[dict], root: str = RESULTS,
     machine counted once: a group of runs that trained k at a time (`gpu_sharing`, by their folders relative to
     `root`) held it for max(their summed time / k, the longest of them), a queue that keeps k running; a run in no
     group held its machine alone."""
+    return sum(machine_shares(runs, root, groups).values()), sum(last_time(run)[0] for run in runs)
+
+
+def machine_shares(runs: Sequence[dict], root: str = RESULTS,
+                   groups: Sequence[tuple[tuple[str, ...], int]] | None = None) -> dict[str, float]:
+    """Each run's folder -> its part of `machine_time(runs)`: a run in no group its own, a group's time shared by its
+    members in proportion to their times. The parts of any subset of `runs` add up to what they held as members of
+    `runs`: a group split between experiments is counted once over them, not once in each."""
     groups = gpu_sharing(root) if groups is None else groups
     members: dict[int, list[dict]] = {}
-    machine = 0.0
+    shares = {}
     for run in runs:
         where = os.path.relpath(run["dir"], root)
         found = next((i for i, (patterns, _) in enumerate(groups) if any(fnmatch.fnmatch(where, p) for p in patterns)),
                      None)
         if found is None:
-            machine += last_time(run)[0] * gpus_of(run)
+            shares[run["dir"]] = last_time(run)[0] * gpus_of(run)
         else:
             members.setdefault(found, []).append(run)
     for i, shared in members.items():
         times = [last_time(run)[0] for run in shared]
-        machine += max(sum(times) / groups[i][1], max(times)) * max(gpus_of(run) for run in shared)
-    return machine, sum(last_time(run)[0] for run in runs)
+        held = max(sum(times) / groups[i][1], max(times)) * max(gpus_of(run) for run in shared)
+        shares.update({run["dir"]: held * t / max(sum(times), 1e-12) for run, t in zip(shared, times)})
+    return shares

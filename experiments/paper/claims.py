@@ -13,7 +13,9 @@ policy that does nothing (`report.load_floors`, written by `python -m experiment
 
 (a) Learning (paper Sec. IV-A, Fig. 4), from `--curves` (OUT/<task>/<agent>, experiments/paper/curves.py); on
     nicol_lift every figure is the success over air goals alone (metrics.csv's `eval_success_air`; a run without
-    that column is judged on its overall success and named in the rule).
+    that column is judged on its overall success and named in the rule, and then so are the arms it is compared
+    with: a comparison reads one measure). Every run is judged over its task's budget (`cell_budget`: a longer run
+    is cut to it), so that the arms compared share their epochs.
     - The BidAL agents learn every task, the visual baseline none: a run has learned when every seed is clearly above
       its task's floor (`report.seeds_above`: a one-sided binomial test of its last `--last-n` epochs' eval episodes
       against the floor, Holm over the seeds; on nicol_lift's air goals the floor is at least `LIFT_NEVER`, what a
@@ -34,22 +36,26 @@ policy that does nothing (`report.load_floors`, written by `python -m experiment
     success is steadier (each run's residual std around its own fitted trend over the last N epochs,
     `protocol.residual_spread`) and higher (each run's last-N mean) than both baselines', Welch over runs, Holm over
     the four checks of each row. Steadiness is "not measured" while a curve still moves over the window
-    (`protocol.trending`: its runs' slope interval excludes 0): a spread around a climb is the climb's.
+    (`protocol.trending`: its runs' slope interval excludes 0 and the mean slope moves success by at least
+    `protocol.MIN_MOVE` over the window): a spread around a climb is the climb's.
 (c) Transfer (Sec. IV-C, Fig. 6): reduced lift learns faster from nicol_slide's representation than from scratch:
     transfer − scratch in AUC (primary), env steps to 0.3 and 0.5 reported. From `--transfer`.
 
 Verdicts. A check favours the claim, is against it, is unclear, or is at the ceiling (which does not decide).
-"reproduced": every deciding check favours; "reversed": none favours and one is against (so a comparison is
-reversed only where its primary measure's interval lies against the claim); "not reproduced": otherwise; "not
-measured": a run the claim needs is missing or short (fewer epochs than its budget: the curves grid's epochs per
-task, or the env and agent preset's for the noise and transfer runs, or its config's if more), a task lacks its
-floor, or a steadiness would be read on a climb; its figures still shown. Runs made on other physics than the task's
-model today (config.json's fingerprints, `envs_mjx.base.Env.physics_id`; runs older than that record none), and runs
-of a task named by `--stale`, get their verdict qualified "measured on ... runs not recorded on today's physics".
+"reproduced": every deciding check favours; "reversed": none favours and one is against (so a comparison is reversed
+only where its primary measure's interval lies against the claim); "not reproduced": otherwise; "not measured": a
+run the claim needs is missing or short (fewer epochs than its budget: the curves grid's epochs per task, or for the
+noise and transfer runs the smallest of the compared arms' budgets, each the env and agent preset's or its config's
+if more, to which the longer arms are cut; or fewer seeds with epochs than its cell's seed blocks plan), a task
+lacks its floor, or a steadiness would be read on a climb; its figures still shown. Runs made on other physics than
+the task's model today (config.json's fingerprints, `envs_mjx.base.Env.physics_id`; runs older than that record
+none), and runs of a task named by `--stale`, get their verdict qualified "measured on ... runs not recorded on
+today's physics".
 
-Time: the file ends with the machine time the runs on today's physics held (`report.machine_time`: wall time × the
-GPUs of their machine, runs that shared a GPU counted once as the experiments' figures.json record it), per
-experiment and in all, and beside it the summed process time per machine (config.json's "hardware").
+Time: the file ends with the machine time the runs on today's physics held (`report.machine_shares`: wall time ×
+the GPUs of their machine, runs that shared a GPU counted once as the experiments' figures.json record it, a group's
+time shared by its runs), per experiment and in all, and beside it the summed process time per machine
+(config.json's "hardware").
 
 The previous table: the section of `--out` from its line `## On the earlier tasks` to its end is kept when the
 file is written again, so that the claims as judged on the earlier tasks' runs stay beside today's for
@@ -157,10 +163,13 @@ def judged(checks: Sequence[str], gaps: Sequence[str], tasks: set[str], stale: s
 
 
 def gap(name: str, run: dict | None, budget: int) -> str | None:
-    """Why a run cannot measure a claim: missing, or fewer epochs than `budget`; None if neither."""
+    """Why a run cannot measure a claim: missing, fewer epochs than `budget`, or fewer seeds with epochs than its
+    cell's blocks plan ("planned_seeds", `report.load_run`); None if none of these."""
     if run is None:
         return f"{name} missing"
-    done = int(run["epoch"][-1])
+    done, planned = int(run["epoch"][-1]), run.get("planned_seeds", run["seeds"])
+    if run["seeds"] < planned:
+        return f"{name} short ({run['seeds']} of {planned} seeds)"
     return f"{name} short ({done} of {budget} epochs)" if done < budget else None
 
 
@@ -191,16 +200,34 @@ def load_grid(curves_dir: str, tasks: Sequence[str] = protocol.paper_tasks()) ->
     return {(t, a): grid.loaded(os.path.join(curves_dir, t, a)) for t in tasks for a in AGENTS}
 
 
-def judged_curve(run: dict) -> tuple[report.Curve, bool]:
-    """(The curve claim (a) judges a run by, whether it is a nicol_lift run judged on its overall success for want
-    of `report.AIR`): on nicol_lift each seed's success over air goals alone (a policy that slides but never lifts
-    scores 0.5625 overall and 0.125 there, `never_lift_success`), elsewhere its eval success."""
+def judged_curve(run: dict, overall: bool = False) -> tuple[report.Curve, bool]:
+    """(The curve claim (a) judges a run by, whether it is a nicol_lift run judged on its overall success): on
+    nicol_lift each seed's success over air goals alone (a policy that slides but never lifts scores 0.5625 overall
+    and 0.125 there, `never_lift_success`), unless the run lacks `report.AIR` or `overall` asks for overall success
+    (an arm it is compared with lacks it: both arms on one measure); elsewhere its eval success."""
     curve = report.curves([run])[0]
     if run["env"] != LIFT:
         return curve, False
-    if run["success_air"] is None:
+    if overall or run["success_air"] is None:
         return curve, True
     return dataclasses.replace(curve, success=run["success_air"]), False
+
+
+def lacks_air(runs: Sequence[dict | None]) -> bool:
+    """Whether a nicol_lift run among `runs` lacks `report.AIR`: then all of them are judged on overall success."""
+    return any(run is not None and run["env"] == LIFT and run["success_air"] is None for run in runs)
+
+
+def common_budget(runs: Sequence[dict | None]) -> int:
+    """The epochs arms compared with each other are judged over: the smallest of their budgets (`protocol.budget`),
+    each longer arm cut to it; 0 where none exists."""
+    return min((protocol.budget(run) for run in runs if run is not None), default=0)
+
+
+def cell_budget(task: str, run: dict) -> int:
+    """The epochs a cell of the curves grid is judged over: its task's budget (`protocol.paper_epochs`), the same for
+    every agent, or for a task without one the run's own (`protocol.budget`). A longer run is cut to it."""
+    return protocol.paper_epochs().get(task) or protocol.budget(run)
 
 
 def seed_figures(curve: report.Curve, last_n: int) -> Figures:
@@ -219,11 +246,16 @@ Figures = dict[str, tuple[np.ndarray, np.ndarray]]  # `seed_figures`: measure ->
 class Grid:
     """The curves grid as claim (a) judges it."""
 
+    # the comparisons' side: every arm on one measure (all nicol_lift runs on overall success where one lacks
+    # `report.AIR`) over its task's budget (`cell_budget`)
     figures: dict[tuple[str, str], Figures]  # (task, agent) -> `seed_figures` of its `judged_curve`
     budgets: dict[tuple[str, str], float]  # (task, agent) -> its run's last env steps per seed
-    overall: tuple[str, ...]  # the agents whose nicol_lift run is judged on overall success (no `report.AIR`)
+    overall: tuple[str, ...]  # the agents whose nicol_lift run is so judged on overall success
+    # the learned side: each run alone, on its own best measure (air goals where it has them)
     above: dict[tuple[str, str], np.ndarray]  # (task, agent) -> per seed, clearly above its floor (`learned_seeds`)
     floors: dict[tuple[str, str], float]  # (task, agent) -> the floor its curve is tested against
+    final: dict[tuple[str, str], np.ndarray]  # (task, agent) -> each seed's final success on that measure
+    learned_overall: tuple[str, ...]  # the agents whose nicol_lift run lacks `report.AIR`
 
 
 def learned_floor(floors: report.Floors, task: str, overall: bool) -> tuple[float, float] | None:
@@ -239,23 +271,29 @@ def learned_floor(floors: report.Floors, task: str, overall: bool) -> tuple[floa
 
 def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: report.Floors) -> Grid:
     """The `Grid` of the runs that exist; `above` and `floors` only where the task's floor is known."""
-    figures, budgets, overall, above, tested = {}, {}, [], {}, {}
+    figures, budgets, overall, above, tested, final, own_overall = {}, {}, [], {}, {}, {}, []
+    lift_overall = lacks_air(list(runs.values()))
     for key, run in runs.items():
         if run:
-            curve, fallback = judged_curve(run)
+            budget = cell_budget(key[0], run)
+            curve, fallback = judged_curve(run, lift_overall)
+            curve = curve.first(budget)
             figures[key], budgets[key] = seed_figures(curve, last_n), float(curve.env_steps[-1])
             overall += [key[1]] * fallback
+            own, fallback = judged_curve(run)
+            own = own.first(budget)
+            final[key], own_overall = report.final_per_seed(own, last_n), own_overall + [key[1]] * fallback
             if (floor := learned_floor(floors, key[0], fallback)) is not None:
                 tested[key] = floor[0]
-                above[key] = report.seeds_above(curve.success, protocol.eval_episodes(run) * floor[1], floor[0], last_n)
-    return Grid(figures, budgets, tuple(dict.fromkeys(overall)), above, tested)
+                above[key] = report.seeds_above(own.success, protocol.eval_episodes(run) * floor[1], floor[0], last_n)
+    return Grid(figures, budgets, tuple(dict.fromkeys(overall)), above, tested, final,
+                tuple(dict.fromkeys(own_overall)))
 
 
 def grid_gaps(runs: dict[tuple[str, str], dict | None], agents: Sequence[str]) -> list[str]:
     """Why the cells of `agents` cannot measure a claim (`gap`): the runs of a claim about those agents alone, so
     that a missing cell of another agent (the λ = 0 ablation's) leaves it measured."""
-    found = [gap(f"{t}/{a}", run, max(protocol.paper_epochs().get(t, 0), protocol.budget(run) if run else 0))
-             for (t, a), run in runs.items() if a in agents]
+    found = [gap(f"{t}/{a}", run, cell_budget(t, run) if run else 0) for (t, a), run in runs.items() if a in agents]
     return [g for g in found if g]
 
 
@@ -290,7 +328,7 @@ def learns_claims(measured: Grid, runs: dict[tuple[str, str], dict | None], last
             learned, failed = above is not None and above.all(), above is not None and not above.any()
             checks.append(UNCLEAR if not (learned or failed) else FAVOURS if learned == learns else AGAINST)
         learned = sum(bool(measured.above.get(k, np.zeros(1, bool)).all()) for k in cells)
-        final = {key: measured.figures[key][FINAL][0] for key in cells}
+        final = {key: measured.final[key] for key in cells}
         pick = (min if learns else max)(cells, key=lambda k: final[k].mean(), default=None)
         ours = "—" if pick is None else (
             f"{'lowest' if learns else 'highest'}: {pick[1]} on {pick[0]} {figure(final[pick])} (floor "
@@ -300,7 +338,7 @@ def learns_claims(measured: Grid, runs: dict[tuple[str, str], dict | None], last
         ours += "" if pick is None else f"; {learned} of {len(cells)} runs learned"
         paper = "learn all tasks (Fig. 4)" if learns else "fails to learn any task (Fig. 4)"
         rows.append(Claim(name, ours, paper, judged(checks or [UNCLEAR], gaps, tasks, stale),
-                          learned_rule(last_n, measured.overall)))
+                          learned_rule(last_n, measured.learned_overall)))
     return rows
 
 
@@ -360,9 +398,11 @@ def comparison_text(primary: Compared, check_: str, p: float, secondary: Sequenc
     return f"vs {primary.other}: {primary.text}{p_text} ({check_}); reported, not deciding: {reported}"
 
 
-def floors_text(floors: report.Floors, tasks: Sequence[str]) -> str:
-    """"floors: planar_reach 0.008, …" of `tasks` (nicol_lift's over air goals)."""
-    return "floors: " + ", ".join(f"{t} {report.floor_value(floors, t, 'air' if t == LIFT else 'all')}" for t in tasks)
+def floors_text(floors: report.Floors, tasks: Sequence[str], overall: bool = False) -> str:
+    """"floors: planar_reach 0.008, …" of `tasks` (nicol_lift's over air goals, or over all goals where its runs are
+    judged on `overall` success)."""
+    subset = {LIFT: "all" if overall else "air"}
+    return "floors: " + ", ".join(f"{t} {report.floor_value(floors, t, subset.get(t, 'all'))}" for t in tasks)
 
 
 def comparisons(measured: Grid, tasks: Sequence[str], others: Sequence[str], share: bool,
@@ -403,7 +443,8 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], floors: report
     checks, texts = comparisons(measured, tasks, PAPER_BASELINES, share=True)
     overall = Claim(
         names[0][0] + f" (against the paper's baselines, {' and '.join(PAPER_BASELINES)})",
-        "mean over tasks: " + " / ".join(texts) + f"; {floors_text(floors, tasks)}", names[0][1],
+        "mean over tasks: " + " / ".join(texts) + f"; {floors_text(floors, tasks, bool(measured.overall))}",
+        names[0][1],
         judged(checks, gaps, set(tasks), stale),
         comparison_rule("the mean over tasks (env steps as a share of each run's budget)", PAPER_BASELINES)
         + f"; {air_note(measured.overall)}")
@@ -414,7 +455,8 @@ def best_claims(measured: Grid, gaps: list[str], stale: set[str], floors: report
     checks, texts = comparisons(measured, order, LIFT_BASELINES, share=True,
                                 weights=[1.0, *([-1.0 / len(others)] * len(others))])
     lift = Claim(
-        names[1][0], f"{LIFT} margin − mean margin on {', '.join(others)}: " + " / ".join(texts), names[1][1],
+        names[1][0], f"{LIFT} margin − mean margin on {', '.join(others)}: " + " / ".join(texts)
+        + f"; {floors_text(floors, order, bool(measured.overall))}", names[1][1],
         judged(checks, gaps, set(tasks), stale),
         comparison_rule(f"its margin on {LIFT} less its mean margin on the other tasks (a contrast of the tasks' "
                         "means; the ceiling judged on nicol_lift; against the paper's baseline that learns the "
@@ -435,7 +477,7 @@ def added_claim(measured: Grid, other: str, gaps: list[str], stale: set[str], fl
     if not tasks:
         return Claim(name, "—", paper, f"{NOT_MEASURED}: no {OURS} run beside an {other} run", "")
     checks, texts = comparisons(measured, tasks, (other,), share=True)
-    return Claim(name, "mean over tasks: " + texts[0] + f"; {floors_text(floors, tasks)}", paper,
+    return Claim(name, f"mean over tasks: {texts[0]}; {floors_text(floors, tasks, bool(measured.overall))}", paper,
                  judged(checks, gaps, set(tasks), stale),
                  comparison_rule("the mean over tasks (env steps as a share of each run's budget)", (other,))
                  + f"; {air_note(measured.overall)}")
@@ -500,8 +542,9 @@ def plain_claims(plain_dir: str, last_n: int, stale: set[str]) -> list[Claim]:
     rows = []
     for ours, added in ((OURS, ""), ("multimodal_baseline", "added arm: ")):
         name = f"(a, {added}plain protocol) {ours} lifts where {PROPRIO} cannot"
-        gaps = [g for a in (ours, PROPRIO) if (g := gap(f"{LIFT}/{a} ({plain_dir})", runs[LIFT, a],
-                                                        protocol.budget(runs[LIFT, a]) if runs[LIFT, a] else 0))]
+        pair = [runs[LIFT, a] for a in (ours, PROPRIO)]
+        budget = common_budget(pair)
+        gaps = [g for a in (ours, PROPRIO) if (g := gap(f"{LIFT}/{a} ({plain_dir})", runs[LIFT, a], budget))]
         gaps = [h for h in held if f"/{ours} " in h or f"/{PROPRIO} " in h] or gaps
         rule = lifting_rule(last_n, (PROPRIO,), rule_name).replace(f"{OURS}'s", f"{ours}'s")
         paper = "especially on lifting (Fig. 4; the paper trains without held starts)" if not added else \
@@ -509,8 +552,8 @@ def plain_claims(plain_dir: str, last_n: int, stale: set[str]) -> list[Claim]:
         if runs[LIFT, ours] is None or runs[LIFT, PROPRIO] is None:
             rows.append(Claim(name, "—", paper, judged([], gaps, {LIFT}, stale), rule))
             continue
-        curves = {a: judged_curve(runs[LIFT, a]) for a in (ours, PROPRIO)}
-        final = {a: report.final_per_seed(c, last_n) for a, (c, _) in curves.items()}
+        curves = {a: judged_curve(runs[LIFT, a], lacks_air(pair)) for a in (ours, PROPRIO)}
+        final = {a: report.final_per_seed(c.first(budget), last_n) for a, (c, _) in curves.items()}
         checks, text = seeds_lifting(final, [a for a, (_, o) in curves.items() if o], ours, (PROPRIO,))
         rows.append(Claim(name, text, paper, judged(checks, gaps, {LIFT}, stale), rule))
     return rows
@@ -526,9 +569,11 @@ def noise_claims(noise_dir: str, stale: set[str], floors: report.Floors) -> list
     agents = (OURS, *BASELINES)
     gaps = [f"{a} missing" for a in agents if a not in budgets]
     gaps += [f"{a} at κ {k:.0%} missing" for a in agents if a in budgets for k in NOISE_KAPPAS if (k, a) not in found]
+    budget = min((budgets[a] for a in agents if a in budgets), default=0)  # one budget for the arms compared
+    found = {key: curve.first(budget) for key, curve in found.items()}
     measured = {found[k, a].run_dir: found[k, a] for a in agents for k in NOISE_KAPPAS if (k, a) in found}
-    gaps += [f"{os.path.basename(run_dir)} short ({int(curve.epoch[-1])} of {budgets[curve.label]} epochs)"
-             for run_dir, curve in measured.items() if curve.epoch[-1] < budgets[curve.label]]
+    gaps += [f"{os.path.basename(run_dir)} short ({int(curve.epoch[-1])} of {budget} epochs)"
+             for run_dir, curve in measured.items() if curve.epoch[-1] < budget]
     tasks = {report.load_run(run_dir)["env"] for run_dir in measured}
     floor = report.floor_text(floors, protocol.NOISE_ENV)
     moving = [f"{a} at κ {k:.0%} (slope {protocol.trend_text(found[k, a], protocol.LAST_N[k])})"
@@ -541,7 +586,7 @@ def noise_claims(noise_dir: str, stale: set[str], floors: report.Floors) -> list
     )
     rows = []
     for word, what, measure, positive, column in measures:
-        diffs, labels, ours, paper = [], [], [], []
+        diffs, labels, ours, paper, ceilings = [], [], [], [], []
         for k in NOISE_KAPPAS:
             paper.append(f"{k:.0%}: " + " vs ".join(f"{protocol.PAPER[k][a][column]:.3f}" for a in agents))
             if (k, OURS) not in found:
@@ -549,15 +594,19 @@ def noise_claims(noise_dir: str, stale: set[str], floors: report.Floors) -> list
             mine = measure(found[k, OURS], protocol.LAST_N[k])
             cells = [f"{mine.mean():.4f}"]
             for b in (b for b in BASELINES if (k, b) in found):
-                diffs.append(stats.welch_difference([mine], [measure(found[k, b], protocol.LAST_N[k])]))
+                theirs = measure(found[k, b], protocol.LAST_N[k])
+                diffs.append(stats.welch_difference([mine], [theirs]))
                 labels.append((k, b))
-                cells.append(f"− {b} {difference_text(diffs[-1], 4)}")
+                ceilings.append(positive and min(mine.mean(), theirs.mean()) >= 1.0 - CEILING)  # a success measure
+                cells.append(f"− {b} {difference_text(diffs[-1], 4)}" + (" at the ceiling" if ceilings[-1] else ""))
             ours.append(f"{k:.0%}: " + "; ".join(cells))
-        checks = holm_checks(diffs, positive, [False] * len(diffs))
-        adjusted = stats.holm([d.p for d in diffs]) if diffs else []
+        checks = holm_checks(diffs, positive, ceilings)
+        deciding = [i for i, c in enumerate(ceilings) if not c]
+        adjusted = dict(zip(deciding, stats.holm([diffs[i].p for i in deciding]))) if deciding else {}
         ours_text = " / ".join(ours) or "—"
-        if diffs:
-            ours_text += "; Holm p: " + ", ".join(f"{k:.0%} {b} {q:.3g}" for (k, b), q in zip(labels, adjusted))
+        if adjusted:
+            ours_text += "; Holm p: " + ", ".join(f"{labels[i][0]:.0%} {labels[i][1]} {q:.3g}"
+                                                  for i, q in adjusted.items())
         ours_text += f"; {protocol.NOISE_ENV} {floor}"
         row_gaps = gaps + ([f"curves still move over the window ({'; '.join(moving)})"] if moving and not positive
                            else [])
@@ -565,9 +614,12 @@ def noise_claims(noise_dir: str, stale: set[str], floors: report.Floors) -> list
                 f"{', '.join(str(protocol.LAST_N[k]) for k in NOISE_KAPPAS)}), Welch's 95 % t interval and p, Holm "
                 f"over the {2 * len(BASELINES)} checks: favours when p < {ALPHA} and {OURS}'s is "
                 f"{'larger' if positive else 'smaller'}")
-        if not positive:
+        if positive:
+            rule += f"; a check where both arms are within {CEILING} of 1 is at the ceiling and does not decide"
+        else:
             rule += ("; not measured while an agent's curve still moves over the window (the Student-t interval "
-                     "over its runs of their fitted slopes excludes 0): a spread around a climb is the climb's")
+                     "over its runs of their fitted slopes excludes 0, and the mean slope moves success by at least "
+                     f"{protocol.MIN_MOVE} over the window): a spread around a climb is the climb's")
         rows.append(Claim(
             f"(b) under 10 and 15 % noise {OURS}'s success is {word} than both baselines'", ours_text,
             " / ".join(paper) + f" ({', '.join(agents)}; Table II " + ("±, \"mean standard deviation\")" if column
@@ -583,8 +635,8 @@ def transfer_claims(transfer_dir: str, stale: set[str], floors: report.Floors) -
     """Claim (c): a larger AUC from nicol_slide's representation than from scratch (primary), env steps to each of
     `protocol.THRESHOLDS` reported."""
     runs = {name: grid.loaded(os.path.join(transfer_dir, name)) for name in ("transfer", "scratch", "source")}
-    gaps = [g for name in ("transfer", "scratch") if (g := gap(name, runs[name], protocol.budget(runs[name])
-                                                             if runs[name] else 0))]
+    budget = common_budget([runs["transfer"], runs["scratch"]])
+    gaps = [g for name in ("transfer", "scratch") if (g := gap(name, runs[name], budget))]
     tasks = {run["env"] for run in runs.values() if run} | ({protocol.SOURCE_ENV} if runs["transfer"] else set())
     paper = "learns faster with the slide representation (Fig. 6; no figure given)"
     name = f"(c) reduced lift learns faster from {protocol.SOURCE_ENV} (transfer − scratch)"
@@ -593,7 +645,7 @@ def transfer_claims(transfer_dir: str, stale: set[str], floors: report.Floors) -
             f"{' and '.join(f'{t:g}' for t in protocol.THRESHOLDS)} reported, not deciding; the ceiling as in (a)")
     if runs["transfer"] is None or runs["scratch"] is None:
         return [Claim(name, "—", paper, judged([], gaps, tasks, stale), rule)]
-    arms = {arm: protocol.seed_measures(report.curves([runs[arm]])[0]) for arm in ("transfer", "scratch")}
+    arms = {arm: protocol.seed_measures(report.curves([runs[arm]])[0].first(budget)) for arm in ("transfer", "scratch")}
     texts, checks = [], []
     for key, (a, a_cut) in arms["transfer"].items():
         b, b_cut = arms["scratch"][key]
@@ -667,25 +719,30 @@ def time_report(experiments: dict[str, list[dict]], old: set[str], root: str = r
     process time (each run's last `wall_time_with_compile`, or `wall_time` where metrics.csv predates it), per
     machine as config.json records it."""
     groups = report.gpu_sharing(root) if os.path.isdir(root) else []
-    per_experiment, per_machine, counted_runs, other, without_compile = [], {}, [], [], 0
-    for name, runs in experiments.items():
-        today = [run for run in runs if run["dir"] not in old]
-        other += [run for run in runs if run["dir"] in old]
-        counted_runs += today
-        held, summed = report.machine_time(today, root, groups)
-        per_experiment.append(f"{name} {hours(held)} ({count(len(today), 'run')}; processes {hours(summed)})")
-        for run in today:
+    today = {name: [run for run in runs if run["dir"] not in old] for name, runs in experiments.items()}
+    other = [run for runs in experiments.values() for run in runs if run["dir"] in old]
+    counted_runs = [run for runs in today.values() for run in runs]
+    # each run's part of the time its group held, worked out over all experiments: a group split between two
+    # experiments counts once in all, and its parts add up to it
+    shares = report.machine_shares(counted_runs, root, groups)
+    per_experiment, per_machine, without_compile = [], {}, 0
+    for name, runs in today.items():
+        held, summed = sum(shares[run["dir"]] for run in runs), sum(report.last_time(run)[0] for run in runs)
+        per_experiment.append(f"{name} {hours(held)} ({count(len(runs), 'run')}; processes {hours(summed)})")
+        for run in runs:
             seconds, with_compile = report.last_time(run)
             without_compile += not with_compile
             key = " then ".join(run["config"].get("hardware") or ["not recorded"])
             per_machine[key] = per_machine.get(key, 0.0) + seconds
-    held, summed = report.machine_time(counted_runs, root, groups)
+    held, summed = sum(shares.values()), sum(report.last_time(run)[0] for run in counted_runs)
     machines = "; ".join(f"{machine}: {hours(seconds)}" for machine, seconds in sorted(per_machine.items()))
     return (f"Machine time of the runs behind these claims, on today's physics: {hours(held)} of GPU time held "
-            f"({', '.join(per_experiment)}). Machine time is wall time × the GPUs of the processes' machine, runs "
-            "that shared a GPU counted once: config.json and metrics.csv record neither start times nor neighbours, "
-            "so each experiment's figures.json records which runs trained k at a time on one GPU (\"gpu_sharing\"), "
-            "and such a group counts max(its summed time / k, its longest run), a run in no group its own time. "
+            f"({', '.join(per_experiment)}). Machine time is wall time × the GPUs of the processes' machine (of a "
+            "run resumed on several machines, the largest), runs that shared a GPU counted once: config.json and "
+            "metrics.csv record neither start times nor neighbours, so each experiment's figures.json records which "
+            "runs trained k at a time on one GPU (\"gpu_sharing\"), and such a group counts max(its summed time / k, "
+            "its longest run), shared by its runs in proportion to their times (a group whose runs lie in several "
+            "experiments counts once in all), a run in no group its own time. "
             f"Summed process time, for comparison: {hours(summed)} (per machine, as config.json records it: "
             f"{machines or 'none'}), each run's last `wall_time_with_compile`: training and compiling, summed over "
             "its processes"
@@ -719,7 +776,9 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, plain_dir:
         f"Fig. 4's are {OURS} against the paper's baselines ({' and '.join(PAPER_BASELINES)}); "
         f"{' and '.join(ADDED)} (λ = 0) are our added arms, each on its own row. Every comparison of learning speed "
         f"has one primary measure, {PRIMARY}; final success and env steps to 0.5 and 0.9 are reported and do not "
-        f"decide. Where several checks decide one claim, Holm's correction holds them at α = {ALPHA}. A success "
+        f"decide. Arms compared read one measure over the same epochs: their budget, a longer run cut to it; on "
+        f"{LIFT} success over air goals, or overall success for all where one lacks it. Where several checks "
+        f"decide one claim, Holm's correction holds them at α = {ALPHA}. A success "
         f"measure where both arms are within {CEILING} of 1 is at the ceiling and does not decide. A figure's "
         "interval is Student-t over seeds (clipped to [0, 1]); a difference's is Welch's t over seeds "
         "(`experiments.stats.welch_difference`): with 5 seeds an arm a percentile bootstrap covers about 87 % "
@@ -728,8 +787,8 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, plain_dir:
         "\"Learned\": every seed clearly above its task's floor (a one-sided binomial test of its last "
         f"{last_n} epochs' eval episodes, Holm over the run's seeds). Verdicts: every deciding check favours: "
         "reproduced; none favours and one is against (for a comparison: its primary measure's interval lies "
-        "against the claim): reversed; otherwise not reproduced; a run missing or short, or a steadiness measured "
-        "on curves that still climb: not measured.",
+        "against the claim): reversed; otherwise not reproduced; a run missing or short (of epochs or of its "
+        "planned seeds), or a steadiness measured on curves that still climb: not measured.",
         "",
         claims_table(rows),
         "",

@@ -69,3 +69,24 @@ def test_absent_epochs_are_those_up_to_the_last_without_a_row_and_read_as_spans(
     assert report.absent_note({"a": [3.0, 4.0], "b": [1.0, 2.0], "c": [2.0, 4.0]}) == (
         "Epochs without a row in metrics.csv: a (1-2); c (1, 3); the final success averages the last rows there are.")
     assert report.absent_note({"b": [1.0, 2.0]}) == ""
+
+
+def test_a_group_that_shared_a_gpu_is_counted_once_however_its_runs_are_split(tmp_path):
+    """Three runs of an hour, three at a time on one GPU, one in the curves and two in transfer: they held it an
+    hour, each a third; a subset's parts add up to its share, not to an hour per experiment."""
+    runs = [{"dir": str(tmp_path / where), "config": {}, "wall_time": np.array([3600.0]),
+             report.WITH_COMPILE: np.array([3600.0])} for where in ("curves/a", "transfer/b", "transfer/c")]
+    shares = report.machine_shares(runs, str(tmp_path), [(("curves/a", "transfer/*"), 3)])
+    assert shares == pytest.approx({run["dir"]: 1200.0 for run in runs})
+    assert report.machine_time(runs, str(tmp_path), [(("curves/a", "transfer/*"), 3)]) == pytest.approx((3600.0,
+                                                                                                         10800.0))
+    alone = {**runs[0], "dir": str(tmp_path / "noise/d"), "config": {"hardware": ["1 × GPU", "2 × GPU"]}}
+    assert report.machine_shares([alone], str(tmp_path), []) == {alone["dir"]: 7200.0}  # the largest machine
+
+
+def test_a_cell_with_a_block_of_seeds_not_yet_trained_is_planned_whole(tmp_path):
+    (tmp_path / "cell").mkdir()
+    write_run(tmp_path / "cell" / report.block_name(0, 1), "proprio_baseline", RUN_A)  # 2 seeds
+    (tmp_path / "cell" / report.block_name(2, 4)).mkdir()  # its block's folder made, no epochs yet
+    run = report.load_run(str(tmp_path / "cell"))
+    assert (run["seeds"], run["planned_seeds"]) == (2, 5)

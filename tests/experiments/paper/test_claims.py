@@ -139,7 +139,7 @@ def write_noise(fake_run, out, steady_agent="multimodal_bidal"):
     for agent in protocol.NOISE_AGENTS:
         level, wobble = (0.8, 0.01) if agent == steady_agent else (0.6, 0.1)
         levels = [level + 0.01 * (i % 5 - 2) for i in range(15)]
-        fake_run(str(out / agent), "nicol_slide", rows(levels, wobble=wobble), None, agent)
+        fake_run(str(out / agent), "nicol_slide", rows(levels, protocol.NOISE_EPOCHS, wobble), None, agent)
 
 
 def test_the_command_writes_every_claim_reproduced_where_the_runs_agree_with_the_paper(tmp_path, fake_run, capsys):
@@ -202,7 +202,7 @@ def test_noise_steadiness_is_not_measured_while_the_curves_climb(tmp_path, fake_
         fake_run(str(tmp_path / agent), "nicol_slide", climb, None, agent)
     steadier, higher = claims.noise_claims(str(tmp_path), set(), FLOORS)
     assert steadier.verdict.startswith("not measured: curves still move over the window (multimodal_bidal at κ 10% "
-                                       "(slope +0.01")
+                                       "(slope +0.0")
     assert not higher.verdict.startswith("not measured")
     curve = protocol.load_noise_curves(str(tmp_path))[0][0.10, claims.OURS]
     np.testing.assert_allclose(protocol.residual_spread(curve, 30), 0.01 * np.sqrt(30 / 28), rtol=0.05)
@@ -351,7 +351,7 @@ def test_a_missing_cell_leaves_the_claims_about_other_agents_measured(tmp_path, 
         == missing
 
 
-def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
+def test_a_lift_run_learns_on_air_goals_and_is_compared_on_the_measure_all_arms_have(tmp_path, fake_run):
     write_grid(fake_run, tmp_path)
     # multimodal_bidal slides but never lifts: 0.97 overall, 0.1 on air goals: above their do-nothing floor (0.01)
     # but not above what a policy that never lifts scores there (0.125)
@@ -361,8 +361,17 @@ def test_lift_is_judged_on_air_goals_where_the_run_has_them(tmp_path, fake_run):
     assert rows_["learn"].ours.startswith("lowest: multimodal_bidal on nicol_lift 0.100 [0.100, 0.100] (floor 0.125, "
                                           "0 of 5 seeds above it)")
     assert f"runs without that column ({', '.join(a for a in AGENTS if a != claims.OURS)})" in rows_["learn"].rule
-    # 0 of 5 lift, as many as the paper's baselines (judged on overall success, 0.5 and 0.05: below 0.75)
+    # compared with arms that lack the column, every arm is judged on overall success: 0.97, so 5 of 5 lift, against
+    # the paper's baselines' 0.5 and 0.05 (below 0.75)
+    assert f"{claims.OURS} 5/5 [" in rows_["seeds"].ours and rows_["seeds"].verdict == "reproduced"
+    assert f"runs without that column ({', '.join(AGENTS)})" in rows_["overall"].rule
+    # once every arm has it, every arm is judged on air goals: 0 of 5 lift, as many as the baselines
+    for agent in AGENTS:
+        if agent != claims.OURS:
+            with_air(str(tmp_path / "nicol_lift" / agent), [[0.05] * 5] * protocol.paper_epochs()["nicol_lift"])
+    rows_ = learning(tmp_path)
     assert f"{claims.OURS} 0/5 [" in rows_["seeds"].ours and rows_["seeds"].verdict == "not reproduced"
+    assert "runs without that column" not in rows_["overall"].rule
 
 
 @pytest.mark.parametrize("ours, other, expected", [
@@ -409,3 +418,27 @@ def test_the_previous_table_is_kept_under_its_heading(tmp_path, fake_run):
         assert text.index("| (c) reduced lift") < text.index(claims.PREVIOUS) < text.index("an old row")
         assert claims.main(argv) == 0
     assert claims.main([*argv, "--previous", str(tmp_path / "none.md")]) == 2
+
+
+def test_a_run_short_of_its_planned_seeds_is_not_measured():
+    run = {"epoch": np.arange(1, 31), "seeds": 2, "planned_seeds": 5}
+    assert claims.gap("nicol_slide/proprio_baseline", run, 30) == "nicol_slide/proprio_baseline short (2 of 5 seeds)"
+    assert claims.gap("x", {**run, "seeds": 5}, 30) is None
+
+
+def test_transfer_arms_are_judged_over_the_same_epochs(tmp_path, fake_run):
+    """Scratch trained 60 epochs where transfer trained its 25: both are judged over the first 25, where transfer
+    climbs faster (over all 60, scratch's late epochs near 1 would read as a larger AUC: reversed)."""
+    fake_run(str(tmp_path / "transfer"), "nicol_lift_reduced", rising(0.03, epochs=25), None)
+    fake_run(str(tmp_path / "scratch"), "nicol_lift_reduced", rising(0.02, epochs=60), None, given={"epochs": 60})
+    row = claims.transfer_claims(str(tmp_path), set(), FLOORS)[0]
+    assert row.ours.startswith("AUC 0.410 − 0.280 = +0.130") and row.verdict == "reproduced"
+
+
+def test_noise_success_at_the_ceiling_does_not_decide(tmp_path, fake_run):
+    for agent in protocol.NOISE_AGENTS:
+        levels = [0.99 + (0.005 if agent == claims.OURS else 0.0) + 0.001 * (i % 5 - 2) for i in range(15)]
+        fake_run(str(tmp_path / agent), "nicol_slide", rows(levels, protocol.NOISE_EPOCHS, 0.001), None, agent)
+    higher = claims.noise_claims(str(tmp_path), set(), FLOORS)[1]
+    assert higher.verdict == "not reproduced (at the ceiling: no check decides)"
+    assert "at the ceiling" in higher.ours and "Holm p" not in higher.ours
