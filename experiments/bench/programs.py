@@ -16,8 +16,10 @@ import time
 from typing import Any, Callable, NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 import envs_mjx
+from bidal_jax import replay
 from bidal_jax.config import Config, NetworkConfig, TrainConfig
 from bidal_jax.run import validate
 from bidal_jax.run.devices import device_layout, make_seeded, physics_engine, physics_worlds
@@ -98,6 +100,11 @@ def seeded_program(
                    render=config.agent.uses_image, options=options)
     init, epoch = make_seeded(*make_train(env, config, shards), devices, shards)
     return SeededProgram(init, epoch, config.train, env, devices, shards)
+
+
+def full_buffer(ts):
+    """`ts` with its replay buffer counted as full: batches are drawn from every slot (the update benches')."""
+    return ts.replace(buffer=ts.buffer.replace(size=jnp.asarray(replay.capacity(ts.buffer), jnp.int32)))
 
 
 def timed(fn, repeats: int) -> dict[str, float]:

@@ -24,20 +24,13 @@ import os
 import time
 
 import jax
-import jax.numpy as jnp
 
 import envs_mjx
-from bidal_jax import replay
 from bidal_jax.config import AGENTS, ConfigError
 from bidal_jax.run import validate
 from bidal_jax.train import Shards, make_learner, make_train
-from experiments.bench.programs import parse_variant, program_config, timed
+from experiments.bench.programs import full_buffer, parse_variant, program_config, timed
 from experiments.bench.tracing import print_components, print_summary, traced
-
-
-def full_buffer(ts):
-    """`ts` with its replay buffer counted as full: batches are drawn from every slot."""
-    return ts.replace(buffer=ts.buffer.replace(size=jnp.asarray(replay.capacity(ts.buffer), jnp.int32)))
 
 
 def update_program(name: str, agent: str, seeds: int, updates: int, variant: str):

@@ -30,7 +30,7 @@ import envs_mjx
 from bidal_jax.config import AGENTS
 from bidal_jax.run import rundir, runfiles
 from experiments import cli, report, stats
-from experiments.bench import roofline
+from experiments.bench import floor_table
 from experiments.paper import grid, protocol, rungs
 
 PROG = "python -m experiments.paper.results_docs"
@@ -285,7 +285,7 @@ def ladder_table(root: str, runs: str) -> str:
 
 def roofline_table(root: str, runs: Sequence[str]) -> str:
     """[the counted floors (`experiments.bench.roofline --out`), the measured rows (`experiments.bench.updates
-    --json`), the measured row's variant]: each part of an update against its own floor (`roofline.parts_table`)."""
+    --json`), the measured row's variant]: each part of an update against its own floor (`floor_table.parts_table`)."""
     counted_path, measured_path, variant = runs
     with open(os.path.join(root, counted_path), encoding="utf-8") as f:
         counted = json.load(f)
@@ -293,7 +293,7 @@ def roofline_table(root: str, runs: Sequence[str]) -> str:
         measured = [row for row in json.load(f) if row["variant"] == variant]
     if not measured:
         raise ValueError(f"{measured_path}: no row of variant {variant!r}")
-    return report.markdown_table(*roofline.parts_table(counted, measured[0]))
+    return report.markdown_table(*floor_table.parts_table(counted, measured[0]))
 
 
 TABLES: dict[str, Callable[[str, object], str]] = {

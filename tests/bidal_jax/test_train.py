@@ -17,7 +17,7 @@ from bidal_jax.config import Config, NetworkConfig, RunConfig, TrainConfig
 from bidal_jax.run.devices import make_seeded
 from bidal_jax.train import Shards, make_learner, make_train
 from envs_mjx.planar_reach import PlanarReach
-from experiments.bench.updates import full_buffer
+from experiments.bench.programs import full_buffer
 
 TINY = TrainConfig(num_envs=4, cycles_per_epoch=2, updates_per_cycle=2, batch_size=8, buffer_episodes=8, eval_envs=4)
 

@@ -6,7 +6,7 @@ import json
 import jax
 import pytest
 
-from experiments.bench import roofline
+from experiments.bench import floor_table, roofline
 from experiments.bench import updates as bench_updates
 
 TINY = "batch_size=8,buffer_episodes=32,num_envs=16,net.hidden_size=16,net.embed_size=8,net.conv_channels=2"
@@ -48,8 +48,8 @@ def test_the_encoder_forward_counts_exactly_the_convs_useful_work(counted, full_
 
 def test_every_network_has_its_parts_flops_and_bytes(counted):
     parts = {p["part"]: p for p in counted["parts"]}
-    assert list(parts)[: len(roofline.PARTS)] == list(roofline.PARTS)
-    for name in ("encoder forward", "encoder backward", "critic", "actor", roofline.MODELS):
+    assert list(parts)[: len(floor_table.PARTS)] == list(floor_table.PARTS)
+    for name in ("encoder forward", "encoder backward", "critic", "actor", floor_table.MODELS):
         assert sum(parts[name]["flops"].values()) > 0, name
     n = sum(counted["parameters_per_seed"].values())
     assert parts["optimiser (Adam)"]["bytes"] == 2 * 7 * 4 * n  # 2 seeds, 7 words a parameter
@@ -62,7 +62,7 @@ def test_each_part_is_set_against_its_own_floor():
     measured = {"device_kind": "NVIDIA H100 80GB HBM3", "ms": 1.0,
                 "parts": [{"component": "update: Encoder forward", "ms": 0.1},
                           {"component": "update: optimiser (Adam)", "ms": 0.02}, {"component": "other", "ms": 0.3}]}
-    head, rows = roofline.parts_table(counted, measured)
+    head, rows = floor_table.parts_table(counted, measured)
     assert "H100" in head[3]
     assert rows[0] == ["encoder forward", "0.99", "3.35", "1.0", "1.0", "100", "100×"]
     assert rows[1][-3:] == ["2.0", "20", "10×"]
@@ -72,15 +72,15 @@ def test_each_part_is_set_against_its_own_floor():
 
 @pytest.mark.parametrize("component, part", [("update: Encoder backward", "encoder backward"),
                                              ("update: Encoder/VisionBranch_0/PatchConv_1 forward", "encoder forward"),
-                                             ("update: InverseModel/Dense_0 backward", roofline.MODELS),
+                                             ("update: InverseModel/Dense_0 backward", floor_table.MODELS),
                                              ("update: optimiser (Adam)", "optimiser (Adam)"), ("camera", "camera")])
 def test_a_profile_label_at_any_depth_names_its_part(component, part):
-    assert roofline.part_of(component) == part
+    assert floor_table.part_of(component) == part
 
 
 def test_an_unknown_chip_is_one_line():
     with pytest.raises(ValueError, match="'Tesla T4': no peaks known; one of H100, H200 is allowed"):
-        roofline.chip_of("Tesla T4")
+        floor_table.chip_of("Tesla T4")
 
 
 def test_the_updates_bench_writes_its_rows_for_the_floors(tmp_path, capsys):
