@@ -19,15 +19,19 @@ others):
 - `proprio`: multimodal_baseline and multimodal_bidal on nicol_slide, as they are (the image and all 40 proprio
   features): the level the rungs below are measured against.
 
-A rung closes the gap of its column when its final success (the mean over seeds of each seed's mean over its last
-`--last-n` epochs) is at least the `proprio` rung's less `CLOSE`; the table names the first rung that does, or says
-that none does (`gap_line`). Then the linear probe (`experiments.probes.encoder`) of every finished cell's encoder at
-its latest checkpoint, and of the same architecture randomly initialised: ridge regression from φ(s), and from the
-vision branch's output, to the true `obj_pos` and `ee_pos` on frames of `--probe-episodes` scripted nicol_slide
-episodes, held-out episodes scored (R² and RMSE in cm per axis), into OUT/probe.json; a cell already probed at its
-latest checkpoint is not probed again. The probe runs in this process after training; with `--ray` this process
-keeps JAX on the CPU (the GPUs are the cells'), so the probe waits for a run of the same command without `--ray`
-(every cell then done: only the probe runs). `--no-probe` skips it.
+A column has a gap to close when every seed of its `proprio` cell is clearly above the task's floor and its `image`
+cell's final success (the mean over seeds of each seed's mean over its last `--last-n` epochs) is more than `CLOSE`
+below the `proprio` cell's; a rung closes it when Welch's 95 % interval of its per-seed finals less the `proprio`
+cell's lies at or above −`CLOSE`. The table names the first rung that does, with that interval, or says that none
+does, or that the gap is not measured while a rung below the first that closes it, or the `proprio` cell, is
+unfinished or stale (`rungs.gap_line`). Then the linear probe (`experiments.probes.encoder`) of every finished
+cell's encoder at its latest checkpoint, and of the same architecture randomly initialised: ridge regression from
+φ(s), and from the vision branch's output, to the true `obj_pos` and `ee_pos` on frames of `--probe-episodes`
+scripted nicol_slide episodes, held-out episodes scored (R² and RMSE in cm per axis), into OUT/probe.json; a cell
+already probed at its latest checkpoint (its step and the CRC-32 of its digest, `checkpoint_digest`) is not probed
+again. The probe runs in this process after training; with `--ray` this process keeps JAX on the CPU (the GPUs are
+the cells'), so the probe waits for a run of the same command without `--ray` (every cell then done: only the probe
+runs). `--no-probe` skips it.
 
 Training goes through the grid (`experiments/paper/grid.py`), as the other paper experiments: a cell whose run is at
 its epochs is skipped, an interrupted one resumes from its latest checkpoint, a stale one is refused before any
@@ -50,6 +54,7 @@ import json
 import os
 import shlex
 import sys
+import zlib
 from typing import Sequence
 
 import jax
@@ -114,13 +119,27 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 
+def checkpoint_digest(run_dir: str, step: int) -> str | None:
+    """The CRC-32 (hex) of the digest item of the run's checkpoint `step` (`checkpoint.digest`: a checksum of every
+    state leaf, a few kilobytes): it tells a run retrained to the same step from the one probed there, which the step
+    cannot, and survives copying the run folder, which a file's time would not; None where the checkpoint has none."""
+    path = os.path.join(run_dir, "checkpoints", str(step), "digest", "metadata")  # the JSON item as Orbax writes it
+    if not os.path.isfile(path):
+        return None
+    with open(path, "rb") as f:
+        return f"{zlib.crc32(f.read()):08x}"
+
+
 def to_probe(arms: Sequence[Arm], probes: dict) -> list[Arm]:
     """The arms whose run is at its epochs with a checkpoint there, and whose probe is missing or of another
-    checkpoint step."""
+    checkpoint: another step or another digest (`checkpoint_digest`; an entry written before probes kept it has
+    none, so its cell is probed again)."""
     found = []
     for arm in arms:
         step = checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
-        if step is not None and step >= arm.epochs and probes.get(arm.name, {}).get("step") != step:
+        entry = probes.get(arm.name, {})
+        probed = (entry.get("step"), entry.get("digest"))
+        if step is not None and step >= arm.epochs and probed != (step, checkpoint_digest(arm.run_dir, step)):
             found.append(arm)
     return found
 
@@ -134,12 +153,13 @@ def probe_arms(arms: Sequence[Arm], out: str, episodes: int, seed: int) -> None:
     frames = encoder.slide_frames(env, episodes, jax.random.PRNGKey(seed))
     train, test = encoder.split(frames.episode)
     for arm in arms:
-        trained = encoder.load_encoder(arm.run_dir)
+        step = checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints"))
+        trained = encoder.load_encoder(arm.run_dir, step)
         arm_env = envs_mjx.make(arm.given["env"], render=False)
         segments = arm_env.observation_spec.segment_names
         probes[arm.name] = {
-            "run_dir": arm.run_dir, "step": checkpoint.latest_step(os.path.join(arm.run_dir, "checkpoints")),
-            "episodes": episodes, "frames": [int(train.sum()), int(test.sum())],
+            "run_dir": arm.run_dir, "step": step, "digest": checkpoint_digest(arm.run_dir, step), "episodes": episodes,
+            "frames": [int(train.sum()), int(test.sum())],
             "trained": encoder.probe(trained, frames, segments),
             "random": encoder.probe(encoder.random_encoder(trained, arm_env), frames, segments),
         }

@@ -6,12 +6,13 @@ and probes; this module reads and writes nothing of its own.
 from __future__ import annotations
 
 import json
+import math
 import os
-from typing import Any, NamedTuple, Sequence
+from typing import Any, Collection, NamedTuple, Sequence
 
 import numpy as np
 
-from experiments import report
+from experiments import report, stats
 from experiments.paper import grid, protocol
 from experiments.paper.grid import Arm
 from experiments.paper.protocol import DEFAULT_SEED, paper_epochs
@@ -22,7 +23,8 @@ DEFAULT_OUT = os.path.join("results", "ladder")
 # cell); the rungs above them ask only where their column's success lands, which 3 seeds place
 PILOT_SEEDS, RUNG_SEEDS = 5, 3
 LAST_N = 10
-CLOSE = 0.05  # a rung closes the gap when its final success is at least the top rung's less this
+# a rung closes the gap when Welch's 95 % interval of its per-seed finals less the top rung's lies at or above -CLOSE
+CLOSE = 0.05
 PROBE_FILE = "probe.json"
 NOT_RUN = "not run"
 COLUMNS = ("baseline", "bidal")
@@ -49,11 +51,13 @@ ABOUT = (f"What the pixel agents lack on {TASK}: the baseline (DDPG + HER) and B
          "visual agents), then with the hand's position `ee_pos` beside it (env nicol_slide_ee, through the multimodal "
          "encoder), then with the cube's position `obj_pos` too (nicol_slide_ee_obj), then with all proprio (the "
          f"multimodal agents); at the task's budget, {PILOT_SEEDS} seeds a cell of the image rung (the visual agents' "
-         f"pilot on the task) and {RUNG_SEEDS} of the others. Cells: final / AUC (each seed's "
-         f"final). A rung closes the gap when its final is within {CLOSE} of the top rung's. Then a linear probe of "
-         "the trained, frozen encoders (ridge regression from φ(s) to the true positions on held-out frames of "
-         "scripted episodes), against the same architecture randomly initialised. results/ladder/table.md has the "
-         "probe of every cell, of φ and of the vision branch alone.")
+         f"pilot on the task) and {RUNG_SEEDS} of the others. Cells: final / AUC (each seed's final). There is a gap "
+         "to close when every seed of the top rung is above the task's floor and the image rung's final is more than "
+         f"{CLOSE} below the top rung's; a rung closes it when Welch's 95 % interval of its per-seed finals less the "
+         f"top rung's lies at or above −{CLOSE}; the gap line names the first rung that does, unless a rung below it "
+         "is unfinished or stale. Then a linear probe of the trained, frozen encoders (ridge regression from φ(s) to "
+         "the true positions on held-out frames of scripted episodes), against the same architecture randomly "
+         "initialised. results/ladder/table.md has the probe of every cell, of φ and of the vision branch alone.")
 
 
 def ladder_arms(rungs: Sequence[Rung], seeds: int | None, seed: int, epochs: int | None, extra: dict[str, Any],
@@ -153,33 +157,86 @@ def success_table(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale
     return report.markdown_table(head, rows)
 
 
-def gap_line(arms: Sequence[Arm], runs: dict[str, dict], last_n: int) -> str:
-    """Per column, the first rung below the top whose finished run's final success is at least the top rung's less
-    `CLOSE`, computed from the runs; what is missing where it cannot be said."""
-    by_name = {arm.name: arm for arm in arms}
-    parts = []
-    for i, column in enumerate(COLUMNS):
-        def final(rung: Rung) -> float | None:
-            arm = by_name.get(f"{rung.name}/{rung.agents[i]}")
-            run = runs.get(arm.name) if arm else None
-            return None if run is None or run["epoch"][-1] < arm.epochs else float(finals(run, last_n).mean())
+def unusable(arm: Arm | None, run: dict | None, stale: Collection[str]) -> str:
+    """Why the gap line cannot use a cell: "not finished" (no run, or one short of its epochs), "stale" (`stale`:
+    arm names, `grid.stale_runs`), "of one seed" (no interval); "" where it can."""
+    if arm is None or run is None or run["epoch"][-1] < arm.epochs:
+        return "not finished"
+    if arm.name in stale:
+        return "stale"
+    return "of one seed" if run["success"].shape[1] < 2 else ""
 
-        top = final(TOP)
-        if top is None:
-            parts.append(f"{column}: not measured ({TOP.name}/{TOP.agents[i]}, the level to reach, is not finished)")
+
+def clearly_above(run: dict, floors: report.Floors, last_n: int) -> np.ndarray | None:
+    """Per seed whether it is clearly above the task's floor, the test of the table's "k/S above its floor"
+    (`protocol.above_floor`); None where results/floors lacks the task."""
+    if "all" not in floors.get(TASK, {}):
+        return None
+    return report.seeds_above(run["success"], protocol.eval_episodes(run), floors[TASK]["all"].value, last_n)
+
+
+def difference(rung: np.ndarray, top: np.ndarray) -> tuple[float, float, float]:
+    """(difference, low, high): the mean of the rung's per-seed finals less the top rung's, with Welch's 95 %
+    interval (`stats.welch_interval`); where neither cell's seeds vary (Welch's is undefined), the interval is the
+    difference itself."""
+    diff, low, high = stats.welch_interval(rung, top)
+    return (diff, diff, diff) if math.isnan(low) else (diff, low, high)
+
+
+def column_gap(i: int, arms: dict[str, Arm], runs: dict[str, dict], last_n: int, stale: Collection[str],
+               floors: report.Floors) -> str:
+    """The gap line's text of column `i` (`gap_line`): not measured while the top rung's cell is unusable
+    (`unusable`) or the task has no floor; no gap to close unless every top seed is above the floor and the image
+    rung's final is more than `CLOSE` below the top's; else, scanning the rungs bottom-up, the first that closes it
+    (`difference`'s low end at least −`CLOSE`), not measured where an unusable rung comes before it."""
+    def cell_of(rung: Rung) -> tuple[Arm | None, dict | None]:
+        arm = arms.get(f"{rung.name}/{rung.agents[i]}")
+        return arm, runs.get(arm.name) if arm else None
+
+    top_arm, top_run = cell_of(TOP)
+    if why := unusable(top_arm, top_run, stale):
+        return f"not measured ({TOP.name}/{TOP.agents[i]}, the level to reach, is {why})"
+    above = clearly_above(top_run, floors, last_n)
+    if above is None:
+        return f"not measured ({TASK} has no floor)"
+    top = finals(top_run, last_n)
+    if not above.all():
+        return f"no gap to close ({TOP.agents[i]} {top.mean():.3f}, {above.sum()}/{above.size} seeds above its floor)"
+    blocked: dict[str, list[str]] = {}  # why -> the unusable rungs below the first that closes the gap
+    measured = ""  # the difference of the highest finished rung so far
+    for rung in RUNGS[:-1]:
+        arm, run = cell_of(rung)
+        if why := unusable(arm, run, stale):
+            blocked.setdefault(why, []).append(rung.name)
             continue
-        measured = [(rung, f) for rung in RUNGS[:-1] if (f := final(rung)) is not None]
-        closing = next(((rung, f) for rung, f in measured if f >= top - CLOSE), None)
-        missing = [rung.name for rung in RUNGS[:-1] if final(rung) is None]
-        if closing:
-            rung, f = closing
-            parts.append(f"{column}: {rung.observes} closes it ({rung.agents[i]} {f:.3f} against {top:.3f})")
-        elif missing:  # a rung not finished may still close it
-            parts.append(f"{column}: not measured ({', '.join(missing)} not finished); no finished rung below "
-                         f"{TOP.name} closes it ({top:.3f} to reach)")
-        else:
-            parts.append(f"{column}: no rung below {TOP.name} closes it ({top:.3f} to reach)")
-    return f"Closes the gap (final within {CLOSE} of the {TOP.name} rung's): " + "; ".join(parts) + "."
+        final = finals(run, last_n)
+        if rung is RUNGS[0] and top.mean() - final.mean() <= CLOSE:
+            return f"no gap to close ({rung.agents[i]} {final.mean():.3f}, {TOP.agents[i]} {top.mean():.3f})"
+        diff, low, high = difference(final, top)
+        measured = f"{rung.name} − {TOP.name} {diff:+.3f} {stats.interval_text(low, high)}"
+        if low >= -CLOSE:
+            closes = f"{rung.agents[i]} {final.mean():.3f} against {top.mean():.3f}; {measured}"
+            return (f"not measured ({unmeasured(blocked)}); the first finished rung to close it is {rung.name} "
+                    f"({closes})" if blocked else f"{rung.observes} closes it ({closes})")
+    reached = f"{measured}; {top.mean():.3f} to reach" if measured else f"{top.mean():.3f} to reach"
+    if blocked:
+        return f"not measured ({unmeasured(blocked)}); no finished rung below {TOP.name} closes it ({reached})"
+    return f"no rung below {TOP.name} closes it ({reached})"
+
+
+def unmeasured(blocked: dict[str, list[str]]) -> str:
+    """The rungs that leave a gap not measured, by why: "ee, ee_obj not finished; image stale"."""
+    return "; ".join(f"{', '.join(names)} {why}" for why, names in blocked.items())
+
+
+def gap_line(arms: Sequence[Arm], runs: dict[str, dict], last_n: int, stale: Collection[str]) -> str:
+    """Per column, the first rung below the top that closes the gap (`column_gap`), computed from the runs, stale
+    ones (`stale`, arm names) left out as unfinished ones are; what is missing where it cannot be said."""
+    by_name, floors = {arm.name: arm for arm in arms}, report.load_floors()
+    parts = [f"{column}: {column_gap(i, by_name, runs, last_n, stale, floors)}" for i, column in enumerate(COLUMNS)]
+    return (f"Closes the gap (there is one when every {TOP.name} seed is above the floor and the image rung's final "
+            f"is more than {CLOSE} below the {TOP.name} rung's; a rung closes it when Welch's 95 % interval of its "
+            f"per-seed finals less the {TOP.name} rung's lies at or above −{CLOSE}): " + "; ".join(parts) + ".")
 
 
 def probe_line(probes: dict) -> str:
@@ -191,8 +248,11 @@ def probe_line(probes: dict) -> str:
     entry = probes[probed[0]]
     parts = [f"{name.split('/')[1]} {probe_summary(probes[name], 'trained', 'phi')}" for name in probed]
     parts.append(f"random init {probe_summary(entry, 'random', 'phi')}")
-    return (f"Linear probe of the visual agents' φ on held-out frames ({entry['frames'][1]:,} of {entry['episodes']} "
-            "scripted episodes), mean over seeds, R² per axis x, y, z (RMSE): " + "; ".join(parts) + ".")
+    fitted, held = entry["frames"]
+    scored = round(entry["episodes"] * held / (fitted + held))  # the held-out episodes: all are of one length
+    return (f"Linear probe of the visual agents' φ on {held:,} held-out frames (of {scored} of {entry['episodes']} "
+            f"scripted episodes; fitted on the other {fitted:,} frames), mean over seeds, R² per axis x, y, z (RMSE): "
+            + "; ".join(parts) + ".")
 
 
 def loaded_runs(arms: Sequence[Arm]) -> dict[str, dict]:
@@ -201,18 +261,21 @@ def loaded_runs(arms: Sequence[Arm]) -> dict[str, dict]:
 
 def docs_table(out: str) -> str:
     """docs/results.md's ladder section (`results_docs`): the success table of the runs in `out` (the default cells:
-    each rung's seeds at the budget; stale runs marked), the gap line and the probe line."""
+    each rung's seeds at the budget; stale runs marked), the gap line and the probe line, and the runs resumed with an
+    empty replay buffer (`grid.fresh_buffer_note`)."""
     arms = ladder_arms(RUNGS, None, DEFAULT_SEED, None, {}, out)
     runs = loaded_runs(arms)
     stale = grid.stale_runs(arms, runs, grid.physics_today({arm.given["env"] for arm in arms})) if runs else []
-    lines = f"{gap_line(arms, runs, LAST_N)} {probe_line(read_probes(out))}"
-    return f"{success_table(arms, runs, LAST_N, stale)}\n\n{lines}"
+    lines = [success_table(arms, runs, LAST_N, stale), "",
+             f"{gap_line(arms, runs, LAST_N, stale)} {probe_line(read_probes(out))}", "",
+             *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()})]
+    return "\n".join(lines).rstrip("\n")  # the section's text ends without a blank line
 
 
 def table_text(arms: Sequence[Arm], runs: dict[str, dict], probes: dict, last_n: int, stale: Sequence[str],
                command: str) -> str:
-    """table.md: the success table, the gap line, the stale note, the probe's table, and the command that rewrites
-    it."""
+    """table.md: the success table, the gap line, the stale note, the runs resumed with an empty replay buffer
+    (`grid.fresh_buffer_note`), the probe's table, and the command that rewrites it."""
     lines = [
         f"# The pixel agents' ladder on {TASK}",
         "",
@@ -224,9 +287,10 @@ def table_text(arms: Sequence[Arm], runs: dict[str, dict], probes: dict, last_n:
         "",
         success_table(arms, runs, last_n, stale),
         "",
-        gap_line(arms, runs, last_n),
+        gap_line(arms, runs, last_n, stale),
         "",
         *([f"{grid.STALE} stale: {', '.join(stale)}, {grid.STALE_WHY}.", ""] if stale else []),
+        *grid.fresh_buffer_note({name: run["config"] for name, run in runs.items()}),
         "## Linear probe of the encoders",
         "",
         "Ridge regression from the features of a frame to the true positions (experiments/probes/encoder.py), fitted "
