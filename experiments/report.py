@@ -435,6 +435,12 @@ class Floor:
     half_width: float
     share: float
 
+    @property
+    def bound(self) -> float:
+        """What a seed is tested against (`seeds_above`): the estimate's upper 95 % bound, so that the floor's Monte
+        Carlo error cannot make a seed at the floor look above it."""
+        return self.value + self.half_width
+
 
 Floors = dict[str, dict[str, Floor]]  # task -> goal subset ("all", "air", "table") -> its floor
 

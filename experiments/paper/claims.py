@@ -258,15 +258,19 @@ class Grid:
     learned_overall: tuple[str, ...]  # the agents whose nicol_lift run lacks `report.AIR`
 
 
-def learned_floor(floors: report.Floors, task: str, overall: bool) -> tuple[float, float] | None:
-    """(The floor a run's judged curve is tested against, the share of eval episodes it counts): the task's floor
-    over all goals (`report.load_floors`); on nicol_lift over air goals the larger of that subset's floor and what a
-    policy that never lifts scores there (`LIFT_NEVER`: lifting is the skill), or, judged on overall success, the
-    floor over all goals. None where results/floors lacks the task."""
+def learned_floor(floors: report.Floors, task: str, overall: bool) -> tuple[float, float, float] | None:
+    """(The floor a run's judged curve is shown against, the value its seeds are tested against, the share of eval
+    episodes it counts): the task's floor over all goals (`report.load_floors`; tested against its upper bound,
+    `report.Floor.bound`); on nicol_lift over air goals the larger of that subset's floor and what a policy that
+    never lifts scores there (`LIFT_NEVER`: lifting is the skill), or, judged on overall success, the floor over all
+    goals. None where results/floors lacks the task."""
     found = floors.get(task, {})
     if task != LIFT or overall:
-        return (found["all"].value, 1.0) if "all" in found else None
-    return (max(found["air"].value, LIFT_NEVER), found["air"].share) if "air" in found else None
+        return (found["all"].value, found["all"].bound, 1.0) if "all" in found else None
+    if "air" not in found:
+        return None
+    air = found["air"]
+    return max(air.value, LIFT_NEVER), max(air.bound, LIFT_NEVER), air.share
 
 
 def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: report.Floors) -> Grid:
@@ -285,7 +289,7 @@ def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: 
             final[key], own_overall = report.final_per_seed(own, last_n), own_overall + [key[1]] * fallback
             if (floor := learned_floor(floors, key[0], fallback)) is not None:
                 tested[key] = floor[0]
-                above[key] = report.seeds_above(own.success, protocol.eval_episodes(run) * floor[1], floor[0], last_n)
+                above[key] = report.seeds_above(own.success, protocol.eval_episodes(run) * floor[2], floor[1], last_n)
     return Grid(figures, budgets, tuple(dict.fromkeys(overall)), above, tested, final,
                 tuple(dict.fromkeys(own_overall)))
 
@@ -309,7 +313,8 @@ def learned_rule(last_n: int, overall: Sequence[str]) -> str:
     return (f"a run has learned its task when every seed is clearly above the task's floor (what a policy that does "
             f"nothing scores, results/floors; {air_note(overall)}, whose floor is the larger of the air goals' and "
             f"{LIFT_NEVER}, what a policy that slides but never lifts scores there): a one-sided binomial test of the "
-            f"seed's successes in its last {last_n} epochs' eval episodes against the floor, Holm over the run's "
+            f"seed's successes in its last {last_n} epochs' eval episodes against the floor (its estimate's upper 95 % "
+            f"bound), Holm over the run's "
             f"seeds, α = {ALPHA}; it has failed when no seed is; a task without a floor is not measured")
 
 
@@ -787,7 +792,8 @@ def claims_report(curves_dir: str, noise_dir: str, transfer_dir: str, plain_dir:
         "(`experiments.stats.welch_difference`): with 5 seeds an arm a percentile bootstrap covers about 87 % "
         "where it claims 95, Welch's interval 95 % within 2.5 points on normal, bounded and skewed per-seed "
         "figures (success rates near 1, Beta, exponential; tests/experiments/test_stats.py simulates it). "
-        "\"Learned\": every seed clearly above its task's floor (a one-sided binomial test of its last "
+        "\"Learned\": every seed clearly above its task's floor (a one-sided binomial test, against the floor "
+        "estimate's upper 95 % bound, of its last "
         f"{last_n} epochs' eval episodes, Holm over the run's seeds). Verdicts: every deciding check favours: "
         "reproduced; none favours and one is against (for a comparison: its primary measure's interval lies "
         "against the claim): reversed; otherwise not reproduced; a run missing or short (of epochs or of its "

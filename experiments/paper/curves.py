@@ -228,7 +228,8 @@ def plot_results(out: str, arms: Sequence[Arm], title: str, last_n: int, today: 
         "",
         f"Final success: the mean ± std over seeds of each seed's mean eval success over its last {last_n} epochs, "
         "with how many seeds are clearly above the task's floor (the last row: what a policy that does nothing "
-        "scores, results/floors; a one-sided binomial test of each seed's successes in those epochs' eval episodes, "
+        "scores, results/floors; a one-sided binomial test of each seed's successes in those epochs' eval episodes "
+        "against the floor estimate's upper 95 % bound, "
         "Holm over the run's seeds, α = 0.05); then the run's wall time (its last `wall_time_with_compile`, "
         "compilation included; * its last "
         "`wall_time`, compilation not counted, where metrics.csv predates that column).",

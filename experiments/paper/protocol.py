@@ -138,15 +138,20 @@ def eval_episodes(run: dict) -> int:
     return int(given or cli.resolve({"env": run["env"], "agent": run["agent"]}).train.eval_envs)
 
 
-def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
-    """"k/S above its floor": how many of the run's seeds are clearly above its task's floor over all goals
-    (`report.seeds_above` of its eval success), a labelled variant's the floor of the task it derives from
-    (`envs_mjx.lineage`); "" where results/floors lacks the task."""
+def seeds_above_floor(run: dict, floors: report.Floors, last_n: int) -> np.ndarray | None:
+    """Per seed [S], whether it is clearly above its task's floor over all goals (`report.seeds_above` of its eval
+    success against the floor's upper bound, `report.Floor.bound`), a labelled variant's the floor of the task it
+    derives from (`envs_mjx.lineage`); None where results/floors lacks the task."""
     task = next((name for name in envs_mjx.lineage(run["env"]) if "all" in floors.get(name, {})), None)
     if task is None:
-        return ""
-    above = report.seeds_above(run["success"], eval_episodes(run), floors[task]["all"].value, last_n)
-    return f"{int(above.sum())}/{above.size} above its floor"
+        return None
+    return report.seeds_above(run["success"], eval_episodes(run), floors[task]["all"].bound, last_n)
+
+
+def above_floor(run: dict, floors: report.Floors, last_n: int) -> str:
+    """"k/S above its floor" (`seeds_above_floor`); "" where results/floors lacks the task."""
+    above = seeds_above_floor(run, floors, last_n)
+    return "" if above is None else f"{int(above.sum())}/{above.size} above its floor"
 
 
 def budget(run: dict, default: int | None = None) -> int:

@@ -167,14 +167,6 @@ def unusable(arm: Arm | None, run: dict | None, stale: Collection[str]) -> str:
     return "of one seed" if run["success"].shape[1] < 2 else ""
 
 
-def clearly_above(run: dict, floors: report.Floors, last_n: int) -> np.ndarray | None:
-    """Per seed whether it is clearly above the task's floor, the test of the table's "k/S above its floor"
-    (`protocol.above_floor`); None where results/floors lacks the task."""
-    if "all" not in floors.get(TASK, {}):
-        return None
-    return report.seeds_above(run["success"], protocol.eval_episodes(run), floors[TASK]["all"].value, last_n)
-
-
 def difference(rung: np.ndarray, top: np.ndarray) -> tuple[float, float, float]:
     """(difference, low, high): the mean of the rung's per-seed finals less the top rung's, with Welch's 95 %
     interval (`stats.welch_interval`); where neither cell's seeds vary (Welch's is undefined), the interval is the
@@ -185,10 +177,11 @@ def difference(rung: np.ndarray, top: np.ndarray) -> tuple[float, float, float]:
 
 def column_gap(i: int, arms: dict[str, Arm], runs: dict[str, dict], last_n: int, stale: Collection[str],
                floors: report.Floors) -> str:
-    """The gap line's text of column `i` (`gap_line`): not measured while the top rung's cell is unusable
-    (`unusable`) or the task has no floor; no gap to close unless every top seed is above the floor and the image
-    rung's final is more than `CLOSE` below the top's; else, scanning the rungs bottom-up, the first that closes it
-    (`difference`'s low end at least −`CLOSE`), not measured where an unusable rung comes before it."""
+    """The gap line's text of column `i` (`gap_line`): not measured while the top rung's cell is unusable (`unusable`)
+    or the task has no floor (`protocol.seeds_above_floor`); no gap to close unless every top seed is above the
+    floor and the image rung's final is more than `CLOSE` below the top's; else, scanning the rungs bottom-up,
+    the first that closes it (`difference`'s low end at least −`CLOSE`), not measured where an unusable rung
+    comes before it."""
     def cell_of(rung: Rung) -> tuple[Arm | None, dict | None]:
         arm = arms.get(f"{rung.name}/{rung.agents[i]}")
         return arm, runs.get(arm.name) if arm else None
@@ -196,7 +189,7 @@ def column_gap(i: int, arms: dict[str, Arm], runs: dict[str, dict], last_n: int,
     top_arm, top_run = cell_of(TOP)
     if why := unusable(top_arm, top_run, stale):
         return f"not measured ({TOP.name}/{TOP.agents[i]}, the level to reach, is {why})"
-    above = clearly_above(top_run, floors, last_n)
+    above = protocol.seeds_above_floor(top_run, floors, last_n)
     if above is None:
         return f"not measured ({TASK} has no floor)"
     top = finals(top_run, last_n)
@@ -283,7 +276,8 @@ def table_text(arms: Sequence[Arm], runs: dict[str, dict], probes: dict, last_n:
         "mean of the seed-mean success over the epochs run; in brackets each seed's final. Floor: what a policy that "
         f"does nothing scores on {TASK} (results/floors; every rung keeps the task's starts and goals); k/S above "
         f"its floor: the seeds whose successes in the last {last_n} epochs' eval episodes are clearly above it (a "
-        f"one-sided binomial test, Holm over the seeds, α = {report.ALPHA}).",
+        f"one-sided binomial test against the floor estimate's upper 95 % bound, Holm over the seeds, α = "
+        f"{report.ALPHA}).",
         "",
         success_table(arms, runs, last_n, stale),
         "",

@@ -6,10 +6,12 @@ which cells are probed again, and the record its figures.json keeps."""
 import json
 import os
 
+import numpy as np
 import pytest
 
 from bidal_jax.run import checkpoint
-from experiments.paper import ladder, rungs
+from experiments import report
+from experiments.paper import ladder, protocol, rungs
 from tests.conftest import TODAY, write_fake_run
 
 EXPERIMENT = ["--seeds", "2", "--epochs", "3", "--last-n", "2", "--quiet"]
@@ -281,3 +283,15 @@ def test_the_record_adds_each_new_command_once():
 
 def test_an_axis_without_r2_reads_as_a_dash():
     assert rungs.axes([[0.5, None, 0.25], [0.7, None, 0.75]]) == "0.60, —, 0.50"
+
+
+def test_a_seed_is_tested_against_the_floors_upper_bound():
+    """0.037 over 10 epochs of 1,000 episodes is clearly above a floor estimated at 0.030 but not above its upper
+    95 % bound, 0.040: the floor's Monte Carlo error does not count as learning."""
+    run = {"env": "nicol_slide_ee", "agent": "multimodal_bidal", "config": {"train": {"eval_envs": 1000}},
+           "success": np.full((10, 2), 0.037)}
+    floors = {"nicol_slide": {"all": report.Floor(0.030, 0.010, 1.0)}}
+    assert not protocol.seeds_above_floor(run, floors, 10).any()
+    floors["nicol_slide"]["all"] = report.Floor(0.030, 0.0, 1.0)
+    assert protocol.seeds_above_floor(run, floors, 10).all()
+    assert protocol.above_floor(run, {}, 10) == ""
