@@ -184,11 +184,17 @@ def difference_text(diff: stats.Difference, digits: int = 3) -> str:
     return f"{diff.point:+,.{digits}f} {stats.interval_text(diff.low, diff.high, digits)}"
 
 
+def holm_deciding(diffs: Sequence[stats.Difference], ceilings: Sequence[bool]) -> dict[int, float]:
+    """Index -> Holm-adjusted p (`stats.holm`) of the comparisons `diffs` of one claim that are not at the ceiling;
+    those at the ceiling do not decide and have none."""
+    deciding = [i for i, c in enumerate(ceilings) if not c]
+    return dict(zip(deciding, stats.holm([diffs[i].p for i in deciding]))) if deciding else {}
+
+
 def holm_checks(diffs: Sequence[stats.Difference], positive: bool, ceilings: Sequence[bool]) -> list[str]:
     """The checks of the deciding comparisons `diffs` of one claim: their p Holm-adjusted over those that are not
-    at the ceiling (`stats.holm`), each by `check`."""
-    deciding = [i for i, c in enumerate(ceilings) if not c]
-    adjusted = dict(zip(deciding, stats.holm([diffs[i].p for i in deciding]))) if deciding else {}
+    at the ceiling (`holm_deciding`), each by `check`."""
+    adjusted = holm_deciding(diffs, ceilings)
     return [check(d, adjusted.get(i, np.nan), positive, ceilings[i]) for i, d in enumerate(diffs)]
 
 
@@ -280,12 +286,11 @@ def grid_figures(runs: dict[tuple[str, str], dict | None], last_n: int, floors: 
     for key, run in runs.items():
         if run:
             budget = cell_budget(key[0], run)
-            curve, fallback = judged_curve(run, lift_overall)
-            curve = curve.first(budget)
+            own, fallback = judged_curve(run)  # the run alone; compared, on overall success where an arm lacks air
+            curve, compared_fallback = judged_curve(run, True) if lift_overall else (own, fallback)
+            own, curve = own.first(budget), curve.first(budget)
             figures[key], budgets[key] = seed_figures(curve, last_n), float(curve.env_steps[-1])
-            overall += [key[1]] * fallback
-            own, fallback = judged_curve(run)
-            own = own.first(budget)
+            overall += [key[1]] * compared_fallback
             final[key], own_overall = report.final_per_seed(own, last_n), own_overall + [key[1]] * fallback
             if (floor := learned_floor(floors, key[0], fallback)) is not None:
                 tested[key] = floor[0]
@@ -415,9 +420,8 @@ def comparisons(measured: Grid, tasks: Sequence[str], others: Sequence[str], sha
     """(checks, texts): OURS against each of `others` with `PRIMARY` deciding (Holm over `others`, the comparisons
     at the ceiling apart) and the other `MEASURES` reported; over `tasks` (the mean, or the contrast `weights`)."""
     primaries = [compared(measured, tasks, o, PRIMARY, share, weights) for o in others]
-    checks = holm_checks([c.diff for c in primaries], True, [c.ceiling for c in primaries])
-    deciding = [i for i, c in enumerate(primaries) if not c.ceiling]
-    adjusted = dict(zip(deciding, stats.holm([primaries[i].diff.p for i in deciding]))) if deciding else {}
+    diffs, ceilings = [c.diff for c in primaries], [c.ceiling for c in primaries]
+    checks, adjusted = holm_checks(diffs, True, ceilings), holm_deciding(diffs, ceilings)
     texts = [comparison_text(c, k, adjusted.get(i, np.nan), [compared(measured, tasks, c.other, m, share, weights)
                                                               for m in MEASURES if m != PRIMARY])
              for i, (c, k) in enumerate(zip(primaries, checks))]
@@ -605,9 +609,7 @@ def noise_claims(noise_dir: str, stale: set[str], floors: report.Floors) -> list
                 ceilings.append(positive and min(mine.mean(), theirs.mean()) >= 1.0 - CEILING)  # a success measure
                 cells.append(f"− {b} {difference_text(diffs[-1], 4)}" + (" at the ceiling" if ceilings[-1] else ""))
             ours.append(f"{k:.0%}: " + "; ".join(cells))
-        checks = holm_checks(diffs, positive, ceilings)
-        deciding = [i for i, c in enumerate(ceilings) if not c]
-        adjusted = dict(zip(deciding, stats.holm([diffs[i].p for i in deciding]))) if deciding else {}
+        checks, adjusted = holm_checks(diffs, positive, ceilings), holm_deciding(diffs, ceilings)
         ours_text = " / ".join(ours) or "—"
         if adjusted:
             ours_text += "; Holm p: " + ", ".join(f"{labels[i][0]:.0%} {labels[i][1]} {q:.3g}"
@@ -718,7 +720,7 @@ def count(n: int, noun: str) -> str:
 
 def time_report(experiments: dict[str, list[dict]], old: set[str], root: str = report.RESULTS) -> str:
     """What the runs behind the claims held, for the runs on today's physics (those whose folders are in `old`, on
-    other physics, `on_other_physics`, apart): the machine time, GPU time the runs held (`report.machine_time`:
+    other physics, `on_other_physics`, apart): the machine time, GPU time the runs held (`report.machine_shares`:
     wall time × the machine's GPUs, runs that shared a GPU counted once, by the experiments' figures.json records
     under `root`), per experiment (name -> its runs, `runs_below`) and in all; beside it, labelled, the summed
     process time (each run's last `wall_time_with_compile`, or `wall_time` where metrics.csv predates it), per
